@@ -81,6 +81,7 @@ class ScreenRenderer:
         self._colours = [np.array(c, np.uint8) for c in (WHITE, RED, GREEN, BLUE)]
         self.screens = np.zeros((game.batch_size, S, S, 3), np.uint8)
         self._drawn = np.zeros(0, np.intp)
+        self.drawn_rows = self._drawn  # flat pixel indices (over B*84*84) drawn by the last render
         self._offsets = (np.arange(game.batch_size) * self.pixels_per_screen)[:, None, None]
 
     def render(self) -> np.ndarray:
@@ -93,6 +94,7 @@ class ScreenRenderer:
         for group, colour in zip(self._entities.groups, self._colours):
             flat[pix[:, group].ravel()] = colour
         self._drawn = pix.ravel()
+        self.drawn_rows = self._drawn
         return self.screens
 
 
@@ -106,8 +108,9 @@ class GridRenderer:
         self._entities = _EntityCells(game)
         self._drawn = np.zeros(0, np.intp)
         n_planes = len(GRID_PLANES)
-        self._per_game = cfg.height * cfg.width * n_planes
+        self._cells_per_game = cfg.height * cfg.width
         self._n_planes = n_planes
+        self.drawn_rows = np.zeros(0, np.intp)  # flat cell indices (over B*H*W) drawn by the last render
 
     def render(self) -> np.ndarray:
         flat = self.grids.reshape(-1)
@@ -117,8 +120,9 @@ class GridRenderer:
         B, O, A = g.batch_size, g.n_obstacles, g.n_agents
         plane = np.empty(cells.shape[1], np.intp)
         plane[0], plane[1:1 + O], plane[1 + O:O + A], plane[-1] = 0, 1, 2, 3
-        idx = cells * self._n_planes + plane
-        idx += (np.arange(B) * self._per_game)[:, None]
+        rows = cells + (np.arange(B) * self._cells_per_game)[:, None]
+        self.drawn_rows = rows.ravel()
+        idx = rows * self._n_planes + plane
         self._drawn = idx.ravel()
         flat[self._drawn] = 1
         return self.grids
@@ -127,21 +131,34 @@ class GridRenderer:
 class FrameStack:
     """The last k frames of each game along the channel axis, oldest first.
 
-    At a reset the stack is the first frame repeated (spec 'Screen').
+    At a reset the stack is the first frame repeated (spec 'Screen'). Two frames differ only
+    where either of them has an entity drawn, so each push copies just those rows (the renderer's
+    ``drawn_rows``) from one slot to the next instead of shifting whole screens.
     """
 
     def __init__(self, batch_size: int, frame_shape: tuple[int, ...], k: int):
         h, w, c = frame_shape
         self.k, self.c = k, c
         self.stacks = np.zeros((batch_size, h, w, c * k), np.uint8)
+        self._rows = self.stacks.reshape(batch_size * h * w, c * k)
+        self._history: list[np.ndarray] = []  # drawn rows of the frame in each slot, oldest first
 
-    def push(self, frames: np.ndarray, reset: np.ndarray | None = None) -> np.ndarray:
-        c = self.c
-        if self.k > 1:
-            self.stacks[..., :-c] = self.stacks[..., c:]
-        self.stacks[..., -c:] = frames
+    def push(self, frames: np.ndarray, drawn_rows: np.ndarray, reset: np.ndarray | None = None) -> np.ndarray:
+        c, k, rows = self.c, self.k, self._rows
+        if len(self._history) < k:
+            self._history = [drawn_rows] * k
+            self.stacks[:] = np.tile(frames, (1, 1, 1, k))
+            return self.stacks
+        new = frames.reshape(rows.shape[0], c)
+        hist = self._history
+        for j in range(k - 1):
+            idx = np.concatenate([hist[j], hist[j + 1]])
+            rows[idx, c * j:c * (j + 1)] = rows[idx, c * (j + 1):c * (j + 2)]
+        idx = np.concatenate([hist[-1], drawn_rows])
+        rows[idx, c * (k - 1):] = new[idx]
+        self._history = [*hist[1:], drawn_rows]
         if reset is not None and reset.any():
-            self.stacks[reset] = np.tile(frames[reset], (1, 1, 1, self.k))
+            self.stacks[reset] = np.tile(frames[reset], (1, 1, 1, k))
         return self.stacks
 
 
@@ -162,4 +179,4 @@ class Observer:
         frames = self.renderer.render()
         if self.stack is None:
             return frames
-        return self.stack.push(frames, reset)
+        return self.stack.push(frames, self.renderer.drawn_rows, reset)
