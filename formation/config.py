@@ -108,8 +108,17 @@ class GameConfig:
 
     @property
     def obstacle_band(self) -> tuple[int, int]:
-        """Rows ``[lo, hi)`` from which random obstacle rows are drawn."""
+        """The spec's rows ``[lo, hi)`` for random obstacles."""
         return (self.height // 5, self.height - self.height // 5)
+
+    @property
+    def obstacle_rows(self) -> tuple[int, ...]:
+        """Rows random obstacles are drawn from: the band less the rows of agent starts and of
+        the destination (on the named settings the band holds none of them: it is the band)."""
+        leader, followers = self.starts
+        taken = {leader[0], self.destination[0], *(f[0] for f in followers)}
+        lo, hi = self.obstacle_band
+        return tuple(r for r in range(lo, hi) if r not in taken)
 
     def default_starts(self) -> tuple[tuple[int, int], tuple[tuple[int, int], ...]]:
         H, W = self.height, self.width
@@ -163,10 +172,6 @@ class GameConfig:
             _fail("n_followers", f"{self.n_followers} is not allowed; allowed: an integer >= 1")
         if self.frame_stack < 1:
             _fail("frame_stack", f"{self.frame_stack} is not allowed; allowed: an integer >= 1")
-        lo, hi = self.obstacle_band
-        if not 0 <= self.n_obstacles <= hi - lo:
-            _fail("n_obstacles", f"{self.n_obstacles} is not allowed; allowed: 0..{hi - lo} "
-                                 f"(one per row of the obstacle band, rows {lo}..{hi - 1})")
         if not self.obstacle_speeds or any(s < 1 for s in self.obstacle_speeds):
             _fail("obstacle_speeds", f"{list(self.obstacle_speeds)} is not allowed; "
                                      "allowed: a non-empty list of integers >= 1")
@@ -185,6 +190,11 @@ class GameConfig:
         broken = formation_broken_by(self, leader, followers)
         if broken:
             _fail("follower_starts", f"the start breaks the formation: {broken}")
+        free_rows = len(self.obstacle_rows)
+        if not 0 <= self.n_obstacles <= free_rows:
+            lo, hi = self.obstacle_band
+            _fail("n_obstacles", f"{self.n_obstacles} is not allowed; allowed: 0..{free_rows} (one per row "
+                                 f"of the obstacle band, rows {lo}..{hi - 1}, not counting agents' start rows)")
 
     def _check_types(self) -> None:
         ints = ("height", "width", "n_obstacles", "max_steps", "n_followers", "frame_stack")

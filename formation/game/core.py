@@ -44,6 +44,7 @@ class BatchedGame:
         self.rng = np.random.default_rng(seed)
         H, W = config.height, config.width
         self._upper = np.array([H - 1, W - 1], dtype=np.int32)
+        self._obstacle_band_rows = np.array(config.obstacle_rows, dtype=np.int32)
         self._dest_col = config.destination[1]
         # Formation and distance depend only on the squared distance: exact lookup tables.
         d2 = np.arange(H * H + W * W + 1)
@@ -111,9 +112,8 @@ class BatchedGame:
         leader, followers = cfg.starts
         self.positions[idx, 0] = leader
         self.positions[idx, 1:] = followers
-        lo, hi = cfg.obstacle_band
-        rows = np.argsort(rng.random((n, hi - lo)), axis=1)[:, :O] + lo
-        self.obstacle_rows[idx] = rows
+        band = self._obstacle_band_rows
+        self.obstacle_rows[idx] = band[np.argsort(rng.random((n, len(band))), axis=1)[:, :O]]
         self.obstacle_cols[idx] = rng.integers(0, cfg.width, size=(n, O))
         self.obstacle_speeds[idx] = rng.choice(np.asarray(cfg.obstacle_speeds), size=(n, O))
         self.obstacle_dirs[idx] = rng.choice(np.array([-1, 1]), size=(n, O))
@@ -222,7 +222,8 @@ class BatchedGame:
 
     def sweep_obstacles(self):
         """Rule 2 alone: move every obstacle |v| unit sub-steps, yielding ``obstacle_cols`` after
-        each sub-step (the cells an obstacle 'reached', for the collision rule)."""
+        each sub-step (the cells an obstacle 'reached', for the collision rule). It yields the
+        live array, overwritten by the next sub-step: copy what you keep."""
         for moving in self._moving:
             self._sub_step(moving)
             yield self.obstacle_cols

@@ -1,0 +1,182 @@
+"""The clairvoyant planner: its paths replay to success in the environment, it is exact (checked
+against a brute force that steps the game itself), and it says None when there is no way through."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from formation.config import ConfigError, GameConfig
+from formation.env import parallel_env
+from formation.game import BatchedGame, Scenario, parse_scenario
+from formation.planner import lower_bound, shortest_path
+
+TINY = dict(height=7, width=7, n_obstacles=2, max_steps=14)  # small enough for the brute force
+
+
+def replay(path, scenario: dict, setting: int, **overrides) -> int:
+    """Play ``path`` in the PettingZoo env from ``scenario``; the step count at success (asserting
+    that no earlier step ends the episode and that the last one is a success)."""
+    env = parallel_env(setting, frame_stack=1, **overrides)
+    env.reset(options={"scenario": scenario})
+    for step, joint in enumerate(path, start=1):
+        _, _, terminations, truncations, infos = env.step(dict(zip(env.possible_agents, joint, strict=True)))
+        if terminations["leader"] or truncations["leader"]:
+            assert step == len(path), f"the episode ended at step {step} of {len(path)}: {infos['leader']}"
+    assert infos["leader"]["success"], infos["leader"]
+    return step
+
+
+def random_scenario(seed: int, setting: int, **overrides) -> dict:
+    env = parallel_env(setting, frame_stack=1, **overrides)
+    env.reset(seed=seed)
+    return env.scenario()
+
+
+def brute_force_length(scenario, config: GameConfig, max_len: int) -> int | None:
+    """Fewest steps to success by the game's own ``step``: every joint action from every distinct
+    full game state (agents and obstacles), layer after layer. It shares nothing with the planner
+    but the rules; its one pruning is dropping leaders too far from the destination for max_len."""
+    start = parse_scenario(scenario, config)
+    n_agents = 1 + config.n_followers
+    grid = np.meshgrid(*[np.arange(4)] * n_agents, indexing="ij")
+    joint = np.stack([g.ravel() for g in grid], axis=1)
+    dest_row, dest_col = config.destination
+    root = BatchedGame(config, 1)
+    root.load([start])
+    positions, cols, dirs = root.positions.copy(), root.obstacle_cols.copy(), root.obstacle_dirs.copy()
+    kids = None
+    for t in range(min(max_len, config.max_steps)):
+        size = len(positions) * len(joint)
+        if kids is None or kids.batch_size < size:
+            kids = BatchedGame(config, size)
+            kids.load([start] * size)  # obstacle rows and speeds; the rest is overwritten below
+        kids.positions[:size] = np.repeat(positions, len(joint), axis=0)
+        kids.obstacle_cols[:size] = np.repeat(cols, len(joint), axis=0)
+        kids.obstacle_dirs[:size] = np.repeat(dirs, len(joint), axis=0)
+        kids.steps[:] = t
+        actions = np.zeros((kids.batch_size, n_agents), np.intp)
+        actions[:size] = np.tile(joint, (len(positions), 1))
+        kids.step(actions)
+        if kids.success[:size].any():
+            return t + 1
+        leader = kids.positions[:size, 0]
+        to_go = np.maximum(leader[:, 0] - dest_row, np.abs(leader[:, 1] - dest_col))
+        alive = np.flatnonzero(~kids.done[:size] & (to_go <= max_len - t - 1))
+        if len(alive) == 0:
+            return None
+        state = np.concatenate([kids.positions[alive].reshape(len(alive), -1), kids.obstacle_cols[alive],
+                                kids.obstacle_dirs[alive]], axis=1)
+        distinct = alive[np.unique(state, axis=0, return_index=True)[1]]
+        positions = kids.positions[distinct].copy()
+        cols, dirs = kids.obstacle_cols[distinct].copy(), kids.obstacle_dirs[distinct].copy()
+    return None
+
+
+def tiny_scenarios(setting: int, n: int, **overrides):
+    """Random scenarios of a tiny board (skipping the few where an obstacle starts on an agent)."""
+    config = GameConfig.from_setting(setting, **{**TINY, **overrides})
+    game = BatchedGame(config, 1)
+    for seed in range(n):
+        game.reset(seed=seed)
+        scenario = game.scenario(0)
+        try:
+            parse_scenario(scenario, config)
+        except ConfigError:
+            continue
+        yield seed, scenario, config
+
+
+# ---------------------------------------------------------------------------- replays
+REPLAYED = [(s, i) for s in (1, 2) for i in range(5)] + [(3, 0), (4, 0), (4, 1)]
+
+
+@pytest.mark.parametrize("setting,seed", REPLAYED)
+def test_path_replays_to_success(setting, seed):
+    scenario = random_scenario(seed, setting)
+    path = shortest_path(scenario, setting)
+    assert path is not None
+    assert all(len(joint) == 2 and all(type(a) is int and 0 <= a <= 3 for a in joint) for joint in path)
+    assert len(path) >= lower_bound(scenario, GameConfig.from_setting(setting))
+    assert replay(path, scenario, setting) == len(path)
+
+
+def test_two_followers_replay_to_success():
+    small = dict(n_followers=2, height=12, width=12, n_obstacles=2)
+    config = GameConfig.from_setting(1, **small)
+    for seed in range(3):
+        scenario = random_scenario(seed, 1, **small)
+        path = shortest_path(scenario, config=config)
+        assert path is not None and all(len(joint) == 3 for joint in path)
+        assert len(path) >= lower_bound(scenario, config)
+        assert replay(path, scenario, 1, **small) == len(path)
+
+
+# ---------------------------------------------------------------------------- exactness
+def test_matches_brute_force_where_detours_are_needed():
+    checked = {"detour": 0, "none": 0, "lower bound": 0}
+    for setting in (1, 2):
+        for seed, scenario, config in tiny_scenarios(setting, 40):
+            path = shortest_path(scenario, config=config)
+            bound = lower_bound(scenario, config)
+            kind = "none" if path is None else "detour" if len(path) > bound else "lower bound"
+            if checked[kind] >= {"detour": 10, "none": 3, "lower bound": 3}[kind]:
+                continue
+            checked[kind] += 1
+            expected = brute_force_length(scenario, config, config.max_steps)
+            assert (None if path is None else len(path)) == expected, (setting, seed)
+            if path is not None:
+                assert replay(path, scenario.to_dict(), setting, **TINY) == len(path)
+    assert checked == {"detour": 10, "none": 3, "lower bound": 3}
+
+
+def test_two_followers_match_brute_force():
+    found = 0
+    for seed, scenario, config in tiny_scenarios(1, 20, n_followers=2, max_steps=10):
+        path = shortest_path(scenario, config=config)
+        if path is not None and len(path) > lower_bound(scenario, config):
+            assert len(path) == brute_force_length(scenario, config, config.max_steps), seed
+            found += 1
+            if found == 2:
+                return
+    pytest.fail("no tiny two-follower scenario needing a detour")
+
+
+def test_needs_more_than_the_lower_bound():
+    """Setting 2, seed 0: an obstacle forces one step beyond the lower bound of 22."""
+    scenario = random_scenario(0, 2)
+    assert lower_bound(scenario, GameConfig.from_setting(2)) == 22
+    assert len(shortest_path(scenario, 2)) == 23
+    assert shortest_path(scenario, 2, max_steps=23) is not None
+    assert shortest_path(scenario, 2, max_steps=22) is None
+
+
+# ---------------------------------------------------------------------------- no way through
+def test_none_behind_a_wall():
+    # On a 3-wide board an obstacle of speed 2 sweeps its whole row every step.
+    narrow = dict(height=9, width=3, n_obstacles=1)
+    config = GameConfig.from_setting(2, **narrow)
+    scenario = {"leader": [6, 1], "follower": [8, 1], "obstacles": [[3, 0, 2]]}
+    assert shortest_path(scenario, 2, **narrow) is None
+    assert shortest_path(scenario, config=config.replace(max_steps=30)) is None
+    assert brute_force_length(scenario, config.replace(max_steps=30), 30) is None
+    # Without the wall the same board is crossed in the lower bound.
+    open_board = {**scenario, "obstacles": []}
+    path = shortest_path(open_board, 2, **{**narrow, "n_obstacles": 0})
+    assert len(path) == lower_bound(open_board, config)
+
+
+def test_none_when_max_steps_is_below_the_lower_bound():
+    scenario = random_scenario(0, 1)
+    assert shortest_path(scenario, 1, max_steps=lower_bound(scenario, GameConfig()) - 1) is None
+
+
+# ---------------------------------------------------------------------------- arguments
+def test_config_keyword_and_scenario_object():
+    config = GameConfig.from_setting(3)
+    scenario = random_scenario(2, 3)
+    by_config = shortest_path(Scenario(tuple(scenario["leader"]), (tuple(scenario["follower"]),),
+                                       tuple(map(tuple, scenario["obstacles"]))), config=config)
+    assert by_config == shortest_path(scenario, 3)
+    with pytest.raises(ConfigError):
+        shortest_path(scenario, config=config, max_steps=10)
