@@ -4,7 +4,8 @@
 | --- | --- |
 | agents | ``leader``, ``follower`` (or ``follower_1`` .. ``follower_k`` with ``n_followers=k``) |
 | actions | ``Discrete(4)``: 0 F (forward), 1 FL (left forward), 2 FR (right forward), 3 S (stay) |
-| observations | ``Box(0, 255, (84, 84, 3*frame_stack), uint8)``: the last ``frame_stack`` RGB screens, oldest first; with ``obs_type="grid"``, ``Box(0, 1, (H, W, 4*frame_stack), uint8)`` planes destination, obstacles, followers, leader |
+| observations | ``Box(0, 255, (84, 84, 3*frame_stack), uint8)``: the last ``frame_stack`` RGB screens, oldest first |
+| grid observations | ``Box(0, 1, (H, W, 4*frame_stack), uint8)`` with ``obs_type="grid"``: one plane per entity kind |
 | arguments | ``setting`` (1-4) and any ``GameConfig`` field; ``render_mode="rgb_array"`` |
 | rules | ``shared/spec/GAME.md`` |
 
@@ -56,10 +57,8 @@ class FormationParallelEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ API
     def reset(self, seed: int | None = None, options: dict | None = None):
+        # Other option keys are ignored: PettingZoo's parallel_api_test passes {"options": 1}.
         options = options or {}
-        unknown = set(options) - {"scenario"}
-        if unknown:
-            raise ConfigError(f"options: unknown key {sorted(unknown)[0]!r}; allowed: 'scenario'")
         if options.get("scenario") is not None:
             if seed is not None:
                 self.game.rng = np.random.default_rng(seed)

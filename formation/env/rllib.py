@@ -37,8 +37,8 @@ class FormationMultiAgentEnv(MultiAgentEnv):
         obs, rewards, terms, truncs, infos = self.env.step(action_dict)
         terms["__all__"] = all(terms.values())
         truncs["__all__"] = all(truncs.values())
-        if terms["__all__"] or truncs["__all__"]:
-            self.agents = []
+        # ``agents`` stays as it was until the next reset (as in RLlib's ParallelPettingZooEnv):
+        # RLlib's env checker matches the last step's dict keys against it.
         return obs, rewards, terms, truncs, infos
 
     def scenario(self) -> dict[str, Any]:

@@ -1,0 +1,76 @@
+"""Shared helpers for the game tests: a plain-Python reading of the rules in ``shared/spec/GAME.md``.
+
+The reference below is written from the spec alone, one entity at a time, so that it can be
+checked against ``BatchedGame`` (the only implementation of the rules) step for step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import pytest
+
+# Action indices (spec 'Actions').
+F, FL, FR, S = 0, 1, 2, 3
+SPEC_MOVES = {F: (-1, 0), FL: (-1, -1), FR: (-1, 1), S: (0, 0)}
+
+
+@dataclass
+class RefOutcome:
+    positions: list[tuple[int, int]]  # leader first
+    obstacles: list[tuple[int, int, int]]  # (row, col, velocity) after the step
+    collided: list[bool]
+    formation_kept: bool
+    reached: bool
+    rewards: list[float]
+    terminated: bool
+    truncated: bool
+    success: bool
+
+
+def reference_step(config, positions, obstacles, actions, steps_before: int) -> RefOutcome:
+    """One step of the spec's rules, written out literally."""
+    H, W = config.height, config.width
+    # 1. Both agents move at once, clamped.
+    new = []
+    for (r, c), a in zip(positions, actions):
+        dr, dc = SPEC_MOVES[int(a)]
+        new.append((min(max(r + dr, 0), H - 1), min(max(c + dc, 0), W - 1)))
+    # 2. Obstacles: |v| unit sub-steps, reversing before a sub-step that would leave the board.
+    reached_cells = []
+    moved = []
+    for r, c, v in obstacles:
+        direction = 1 if v > 0 else -1
+        for _ in range(abs(v)):
+            if not 0 <= c + direction <= W - 1:
+                direction = -direction
+            c += direction
+            reached_cells.append((r, c))
+        moved.append((r, c, direction * abs(v)))
+    # 3. Collision: within distance <= 1 of any cell reached after a sub-step.
+    collided = [any(math.dist(p, q) <= 1 for q in reached_cells) for p in new]
+    # 4. Formation.
+    leader, followers = new[0], new[1:]
+    kept = all(config.d_min < math.dist(leader, f) < config.d_max for f in followers)
+    kept = kept and all(math.dist(followers[i], followers[j]) > config.d_min
+                        for i in range(len(followers)) for j in range(i + 1, len(followers)))
+    # 5. Reach.
+    reached = leader == (0, W // 2)
+    formation_term = config.reward_formation_kept if kept else config.reward_formation_broken
+    rewards = []
+    for i in range(len(new)):
+        r = formation_term + (config.reward_collision if collided[i] else 0.0)
+        if i == 0 and reached:
+            r += config.reward_reach
+        rewards.append(r)
+    terminated = reached or any(collided) or not kept
+    truncated = (steps_before + 1 >= config.max_steps) and not terminated
+    success = reached and not any(collided) and kept
+    return RefOutcome(new, moved, collided, kept, reached, rewards, terminated, truncated, success)
+
+
+@pytest.fixture(scope="session")
+def reference():
+    """The spec's rules in plain Python (see ``reference_step``)."""
+    return reference_step

@@ -1,0 +1,38 @@
+"""The ``formation`` command: the main job's GIF, and one-line errors for bad input."""
+
+import subprocess
+import sys
+
+from PIL import Image
+
+from formation.cli import main
+
+
+def test_show_writes_a_gif_of_successful_planner_paths(tmp_path, capsys):
+    assert main(["show", "--setting", "1", "--episodes", "2", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert out.count("replayed: success") == 2
+    gif = Image.open(tmp_path / "setting1_planner.gif")
+    # two 84x84 screens scaled by 4, joined with a 2-pixel gap scaled by 4
+    assert gif.size == (2 * 336 + 8, 336)
+    assert gif.n_frames >= 25  # 24 planner steps on setting 1, plus the start and a held end
+
+
+def test_bad_override_is_one_line_naming_the_field(capsys):
+    assert main(["show", "--set", "d_min=5", "--out", "unused"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0
+    assert "d_min" in err and "d_max" in err
+
+
+def test_unknown_key_names_the_allowed_keys(capsys):
+    assert main(["show", "--set", "colour=red", "--out", "unused"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("formation: error: colour:") and "n_obstacles" in err
+
+
+def test_console_script_is_installed():
+    done = subprocess.run([sys.executable, "-m", "formation.cli", "show", "--setting", "7"],
+                          capture_output=True, text=True)
+    assert done.returncode == 2
+    assert done.stderr.strip() == "formation: error: setting: unknown setting 7; allowed: 1, 2, 3, 4"
