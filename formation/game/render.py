@@ -80,6 +80,7 @@ class ScreenRenderer:
         self._entities = _EntityCells(game)
         self._colours = [np.array(c, np.uint8) for c in (WHITE, RED, GREEN, BLUE)]
         self.screens = np.zeros((game.batch_size, S, S, 3), np.uint8)
+        self.frames = self.screens  # the common name of the last rendered batch
         self._drawn = np.zeros(0, np.intp)
         self.drawn_rows = self._drawn  # flat pixel indices (over B*84*84) drawn by the last render
         self._offsets = (np.arange(game.batch_size) * self.pixels_per_screen)[:, None, None]
@@ -105,6 +106,7 @@ class GridRenderer:
         cfg = game.config
         self.game = game
         self.grids = np.zeros((game.batch_size, cfg.height, cfg.width, len(GRID_PLANES)), np.uint8)
+        self.frames = self.grids  # the common name of the last rendered batch
         self._entities = _EntityCells(game)
         self._drawn = np.zeros(0, np.intp)
         n_planes = len(GRID_PLANES)

@@ -1,0 +1,78 @@
+"""Rollouts: a batch of games played by given actions, turned into replay records.
+
+``GameRollout`` owns a ``BatchedGame``, keeps each game's frame stack for acting, and after
+every step returns the records of that step (see ``formation.learn.replay``): one per game, plus
+a terminal record for each game whose episode just ended. Finished games restart at once.
+No Ray, no torch: the rollout actors (EnvRunners) and the tests use it alike.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from formation.config import GameConfig
+from formation.game import BatchedGame, Observer
+from formation.learn.replay import Chunk
+
+
+class GameRollout:
+    def __init__(self, config: GameConfig, batch_size: int, seed: int | None = None, stream_offset: int = 0):
+        self.config = config
+        self.game = BatchedGame(config, batch_size=batch_size, seed=seed)
+        self.game.reset()
+        self.observer = Observer(self.game)
+        self.batch_size = batch_size
+        self.n_agents = self.game.n_agents
+        self.streams = stream_offset + np.arange(batch_size)
+        everyone = np.ones(batch_size, bool)
+        self.observations = self.observer.observe(everyone)  # (B, h, w, c*k), for acting
+        self._frames = self.observer.renderer.frames.copy()  # what each game shows now
+        self._first = everyone.copy()
+        # Episode statistics of games that finished, since the last ``pop_episodes``.
+        self._episodes: list[dict] = []
+        self._returns = np.zeros((batch_size, self.n_agents))
+
+    @property
+    def frame_shape(self) -> tuple[int, int, int]:
+        return tuple(self.observer.frame_shape)
+
+    def step(self, actions: np.ndarray, expert: np.ndarray | None = None) -> Chunk:
+        """Play one joint action per game; return the records of this step."""
+        g = self.game
+        frames_before, first = self._frames, self._first
+        g.step(actions)
+        done = g.done.copy()
+        records = Chunk(streams=self.streams, frames=frames_before, first=first,
+                        terminal=np.zeros(self.batch_size, bool), actions=np.asarray(actions, np.int8),
+                        rewards=g.rewards.copy(), terminated=g.terminated.copy(), truncated=g.truncated.copy(),
+                        expert=np.zeros(self.batch_size, bool) if expert is None else expert.copy())
+        self._returns += g.rewards
+        if done.any():
+            ended = np.flatnonzero(done)
+            terminal_frames = self.observer.renderer.render()[ended].copy()
+            for i in ended.tolist():
+                self._episodes.append({
+                    "returns": self._returns[i].tolist(), "steps": int(g.steps[i]), "success": bool(g.success[i]),
+                    "collided": bool(g.collided[i].any()), "broken": bool(not g.formation_kept[i]),
+                    "reached": bool(g.reached[i]), "truncated": bool(g.truncated[i])})
+            self._returns[ended] = 0
+            n = len(ended)
+            terminal = Chunk(streams=self.streams[ended], frames=terminal_frames, first=np.zeros(n, bool),
+                             terminal=np.ones(n, bool), actions=np.zeros((n, self.n_agents), np.int8),
+                             rewards=np.zeros((n, self.n_agents), np.float32), terminated=np.zeros(n, bool),
+                             truncated=np.zeros(n, bool), expert=np.zeros(n, bool))
+            records = concatenate([records, terminal])
+            g.reset(mask=done)
+        self.observations = self.observer.observe(done)
+        self._frames = self.observer.renderer.frames.copy()
+        self._first = done
+        return records
+
+    def pop_episodes(self) -> list[dict]:
+        out, self._episodes = self._episodes, []
+        return out
+
+
+def concatenate(chunks: list[Chunk]) -> Chunk:
+    fields = ("streams", "frames", "first", "terminal", "actions", "rewards", "terminated", "truncated", "expert")
+    return Chunk(**{f: np.concatenate([getattr(c, f) for c in chunks]) for f in fields})

@@ -1,0 +1,126 @@
+"""The frame replay: stacks built at sample time equal what the env produced, each screen is
+stored once, n-step returns equal a hand computation, prioritized sampling follows priorities."""
+
+import numpy as np
+import pytest
+
+from formation.config import GameConfig
+from formation.learn.replay import Chunk, FrameReplay, SumTree
+from formation.learn.rollout import GameRollout
+
+
+def play(config, batch, steps, capacity, seed=0, n_agents=2):
+    """Random play into a replay; returns (replay, {record id: the stack the agents saw})."""
+    rollout = GameRollout(config, batch, seed=seed)
+    replay = FrameReplay(capacity, rollout.frame_shape, n_agents, config.frame_stack, seed=seed)
+    seen = {}
+    rng = np.random.default_rng(seed)
+    for _ in range(steps):
+        observations = rollout.observations.copy()
+        chunk = rollout.step(rng.integers(0, 4, (batch, n_agents)))
+        ids = replay.added + np.arange(len(chunk))
+        for j in range(batch):  # the first `batch` records are this step's, in game order
+            seen[int(ids[j])] = observations[j]
+        replay.add(chunk)
+    return replay, seen, rollout
+
+
+@pytest.mark.parametrize("obs_type", ["pixels", "grid"])
+def test_sampled_stacks_equal_what_the_agents_saw(obs_type):
+    config = GameConfig.from_setting(1, obs_type=obs_type, frame_stack=4)
+    # capacity far below what is played: the ring wraps many times
+    replay, seen, _ = play(config, batch=4, steps=400, capacity=500)
+    assert replay.added > 3 * replay.capacity
+    batch = replay.sample(256, n_step=1, gamma=0.9)
+    assert len(batch["ids"]) == 256
+    for i, obs in zip(batch["ids"], batch["obs"]):
+        np.testing.assert_array_equal(obs, seen[int(i)])
+    # the next observation of a non-terminal step is what the agents saw next
+    nxt = [(i, o) for i, o, d in zip(batch["ids"], batch["next_obs"], batch["discounts"]) if d > 0]
+    assert nxt
+    for i, obs in nxt:
+        successor = replay.next[int(i) % replay.capacity]
+        if int(successor) in seen:  # a truncation's successor is a terminal record, not an agent step
+            np.testing.assert_array_equal(obs, seen[int(successor)])
+
+
+def test_episode_boundaries_repeat_the_first_frame():
+    config = GameConfig.from_setting(1, obs_type="grid", frame_stack=3)
+    replay, seen, _ = play(config, batch=2, steps=60, capacity=10_000)
+    firsts = [i for i in seen if replay.prev[i] == i]
+    assert len(firsts) > 2  # several episodes started
+    for i in firsts:
+        stack, ok = replay.stack(np.array([i]))
+        assert ok[0]
+        frames = np.split(stack[0], 3, axis=-1)
+        np.testing.assert_array_equal(frames[0], frames[2])
+        np.testing.assert_array_equal(frames[1], frames[2])
+
+
+def test_each_screen_is_stored_once():
+    config = GameConfig.from_setting(1, obs_type="pixels", frame_stack=4)
+    replay, seen, rollout = play(config, batch=3, steps=50, capacity=100_000)
+    steps = 3 * 50
+    episodes_ended = int(replay.terminal[: replay.size].sum())
+    # one frame per agent step plus one per finished episode; never one per agent or per stack slot
+    assert replay.added == steps + episodes_ended
+    assert replay.frames.shape[1:] == (84, 84, 3)
+    per_record = replay.nbytes / replay.capacity
+    assert 84 * 84 * 3 <= per_record < 84 * 84 * 3 + 100
+
+
+def hand_chunk(rewards, terminated, truncated, stream=0, first_flags=None):
+    n = len(rewards)
+    first = np.zeros(n, bool) if first_flags is None else np.array(first_flags)
+    return Chunk(streams=np.full(n, stream), frames=np.arange(n, dtype=np.uint8)[:, None, None, None] * np.ones(
+        (1, 2, 2, 1), np.uint8), first=first, terminal=np.zeros(n, bool), actions=np.zeros((n, 2), np.int8),
+        rewards=np.array(rewards, np.float32), terminated=np.array(terminated), truncated=np.array(truncated))
+
+
+def test_n_step_returns_equal_a_hand_computation():
+    replay = FrameReplay(100, (2, 2, 1), n_agents=2, frame_stack=1)
+    r = [[1, 0], [2, -1], [4, 1], [8, -1], [16, 1]]
+    # an episode of 5 steps that terminates on the last, then its terminal record
+    replay.add(hand_chunk(r, [0, 0, 0, 0, 1], [0] * 5, first_flags=[1, 0, 0, 0, 0]))
+    terminal = hand_chunk([[0, 0]], [0], [0])
+    terminal.terminal[:] = True
+    replay.add(terminal)
+    g = 0.5
+    returns, discounts, next_ids, ok = replay.n_step(np.arange(5), n=3, gamma=g)
+    assert ok.all()
+    np.testing.assert_allclose(returns[0], [1 + 2 * g + 4 * g * g, 0 - 1 * g + 1 * g * g])
+    np.testing.assert_allclose(returns[2], [4 + 8 * g + 16 * g * g, 1 - g + g * g])
+    np.testing.assert_allclose(returns[3], [8 + 16 * g, -1 + g])  # stops at the termination
+    np.testing.assert_allclose(discounts[:2], [g ** 3] * 2)
+    np.testing.assert_allclose(discounts[2:], [0, 0, 0])  # terminated inside the window: no bootstrap
+    assert next_ids.tolist() == [3, 4, 5, 5, 5]
+    # the terminal record is never a start
+    assert not replay.n_step(np.array([5]), 3, g)[3][0]
+
+
+def test_truncation_bootstraps_from_the_terminal_record():
+    replay = FrameReplay(100, (2, 2, 1), n_agents=2, frame_stack=1)
+    replay.add(hand_chunk([[1, 1], [1, 1]], [0, 0], [0, 1], first_flags=[1, 0]))
+    terminal = hand_chunk([[0, 0]], [0], [0])
+    terminal.terminal[:] = True
+    replay.add(terminal)
+    returns, discounts, next_ids, ok = replay.n_step(np.array([0]), n=5, gamma=0.9)
+    assert ok[0] and next_ids[0] == 2
+    np.testing.assert_allclose(returns[0], [1.9, 1.9])
+    np.testing.assert_allclose(discounts[0], 0.81)
+
+
+def test_unfinished_chains_are_not_sampled():
+    replay = FrameReplay(100, (2, 2, 1), n_agents=2, frame_stack=1)
+    replay.add(hand_chunk([[1, 1]] * 3, [0, 0, 0], [0, 0, 0], first_flags=[1, 0, 0]))
+    _, _, _, ok = replay.n_step(np.arange(3), n=2, gamma=0.9)
+    assert ok.tolist() == [True, False, False]  # records 1 and 2 still wait for successors
+
+
+def test_prioritized_sampling_follows_priorities():
+    tree = SumTree(5)
+    tree.set(np.arange(5), np.array([0.0, 1.0, 0.0, 3.0, 0.0]))
+    assert tree.total == 4.0
+    draws = tree.find(np.random.default_rng(0).random(4000) * tree.total)
+    assert set(draws.tolist()) == {1, 3}
+    assert 0.7 < (draws == 3).mean() < 0.8
