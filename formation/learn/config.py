@@ -1,0 +1,203 @@
+"""The training config: one YAML file with sections ``game``, ``train``, ``resources``, ``eval``,
+``checkpoint``; validated completely before Ray starts (one-line ``ConfigError`` naming the key).
+
+    game:      {setting: 1, obs_type: grid, frame_stack: 2}      # any GameConfig field
+    train:     {gamma: 0.97, n_step: 3, shaping: 1.0, total_env_steps: 300000, ...}
+    resources: {num_rollout_actors: 1, games_per_actor: 32, num_gpus_per_learner: 0}
+    eval:      {every_env_steps: 25000, episodes: 200}
+    checkpoint: {every_iterations: 10}
+
+``--set train.gamma=0.99`` style overrides use the same dotted names.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from formation.config import ConfigError, GameConfig
+
+PATHS = ("formation", "stock")
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """How the two DQNs learn. Defaults are the recipe that reaches (see docs/TRAINING.md)."""
+
+    gamma: float = 0.97
+    n_step: int = 3
+    lr: float = 3e-4
+    batch_size: int = 128
+    replay_capacity: int = 100_000
+    replay_ratio: float = 0.125  # learner updates per env step, whatever the number of actors
+    learning_starts: int = 5_000  # env steps in replay before the first update
+    target_update_every: int = 1_000  # learner updates between target-network syncs
+    epsilon_start: float = 1.0
+    epsilon_end: float = 0.05
+    epsilon_env_steps: int = 100_000
+    shaping: float = 1.0  # weight of the leader's progress potential; 0 = the paper's reward alone
+    demonstrations: float = 0.0  # fraction of games played by the clairvoyant planner
+    margin: float = 0.0  # DQfD large-margin loss weight on the planner's steps
+    prioritized: bool = False
+    followers_share_policy: bool = True
+    hidden: int = 128
+    channels: tuple[int, int, int] = (16, 32, 32)
+    grad_clip: float = 10.0
+    total_env_steps: int = 300_000
+    weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
+    path: str = "formation"  # "formation": rollout actors -> replay actor -> learner; "stock": RLlib's DQN
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _number(self, "gamma", 0.0, 1.0)
+        _number(self, "lr", 0.0, 1.0, low_open=True)
+        _number(self, "replay_ratio", 0.0, 64.0, low_open=True)
+        _number(self, "epsilon_start", 0.0, 1.0)
+        _number(self, "epsilon_end", 0.0, 1.0)
+        _number(self, "shaping", 0.0, math.inf)
+        _number(self, "demonstrations", 0.0, 1.0)
+        _number(self, "margin", 0.0, math.inf)
+        _number(self, "grad_clip", 0.0, math.inf, low_open=True)
+        for name in ("n_step", "batch_size", "replay_capacity", "target_update_every", "hidden",
+                     "total_env_steps", "weights_every_updates", "epsilon_env_steps"):
+            _integer(self, name, 1)
+        _integer(self, "learning_starts", 0)
+        _integer(self, "seed", 0)
+        if self.path not in PATHS:
+            raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
+        if len(self.channels) != 3 or not all(isinstance(c, int) and c >= 1 for c in self.channels):
+            raise ConfigError(f"train.channels: {list(self.channels)!r} is not allowed; allowed: three integers >= 1")
+
+
+@dataclass(frozen=True)
+class ResourceSettings:
+    num_rollout_actors: int = 1
+    games_per_actor: int = 32
+    cpus_per_rollout_actor: float = 1.0
+    num_gpus_per_learner: float = 0.0
+    num_replay_shards: int = 1
+
+    def __post_init__(self) -> None:
+        _integer(self, "num_rollout_actors", 0, section="resources")
+        _integer(self, "games_per_actor", 1, section="resources")
+        _integer(self, "num_replay_shards", 1, section="resources")
+        _number(self, "cpus_per_rollout_actor", 0.0, 1024.0, section="resources", low_open=True)
+        _number(self, "num_gpus_per_learner", 0.0, 64.0, section="resources")
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    every_env_steps: int = 25_000
+    episodes: int = 200
+    seed: int = 1_000_000  # evaluation scenarios come from seeds training never uses
+
+    def __post_init__(self) -> None:
+        _integer(self, "every_env_steps", 1, section="eval")
+        _integer(self, "episodes", 1, section="eval")
+        _integer(self, "seed", 0, section="eval")
+
+
+@dataclass(frozen=True)
+class CheckpointSettings:
+    every_iterations: int = 10
+
+    def __post_init__(self) -> None:
+        _integer(self, "every_iterations", 1, section="checkpoint")
+
+
+SECTIONS = {"train": TrainSettings, "resources": ResourceSettings, "eval": EvalSettings,
+            "checkpoint": CheckpointSettings}
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    game: GameConfig = field(default_factory=GameConfig)
+    train: TrainSettings = field(default_factory=TrainSettings)
+    resources: ResourceSettings = field(default_factory=ResourceSettings)
+    eval: EvalSettings = field(default_factory=EvalSettings)
+    checkpoint: CheckpointSettings = field(default_factory=CheckpointSettings)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> RunConfig:
+        if not isinstance(values, dict):
+            raise ConfigError(f"config: a mapping of sections is needed, got {type(values).__name__}")
+        allowed = ("game", *SECTIONS)
+        for key in values:
+            if key not in allowed:
+                raise ConfigError(f"{key}: unknown section; allowed: {', '.join(allowed)}")
+        game_values = values.get("game") or {}
+        if not isinstance(game_values, dict):
+            raise ConfigError("game: a mapping of game config fields is needed")
+        try:
+            game = GameConfig.from_dict(game_values)
+        except ConfigError as err:
+            raise ConfigError(f"game.{err}") from None
+        except TypeError as err:
+            raise ConfigError(f"game: {err}") from None
+        parts = {"game": game}
+        for name, kind in SECTIONS.items():
+            section = values.get(name) or {}
+            if not isinstance(section, dict):
+                raise ConfigError(f"{name}: a mapping is needed, got {section!r}")
+            known = {f.name for f in dataclasses.fields(kind)}
+            for key in section:
+                if key not in known:
+                    raise ConfigError(f"{name}.{key}: unknown key; allowed: {', '.join(sorted(known))}")
+            section = {k: tuple(v) if isinstance(v, list) else v for k, v in section.items()}
+            parts[name] = kind(**section)
+        return cls(**parts)
+
+    @classmethod
+    def load(cls, path: str | Path, overrides: dict[str, Any] | None = None) -> RunConfig:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"config: no such file {str(path)!r}")
+        try:
+            values = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as err:
+            line = getattr(getattr(err, "problem_mark", None), "line", None)
+            where = f" at line {line + 1}" if line is not None else ""
+            raise ConfigError(f"config: {path} is not valid YAML{where}") from None
+        return cls.from_dict(apply_overrides(values, overrides or {}))
+
+    def to_dict(self) -> dict[str, Any]:
+        out = {"game": self.game.to_dict()}
+        for name in SECTIONS:
+            section = dataclasses.asdict(getattr(self, name))
+            out[name] = {k: list(v) if isinstance(v, tuple) else v for k, v in section.items()}
+        return out
+
+
+def apply_overrides(values: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    """Apply ``{"train.gamma": 0.99}``-style overrides to a nested config dict (a copy)."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in values.items()}
+    for dotted, value in overrides.items():
+        section, sep, key = dotted.partition(".")
+        if not sep or not key:
+            raise ConfigError(f"--set {dotted}: use section.key=value, e.g. train.gamma=0.99")
+        target = out.setdefault(section, {})
+        if not isinstance(target, dict):
+            raise ConfigError(f"--set {dotted}: section {section!r} is not a mapping")
+        target[key] = value
+    return out
+
+
+def _integer(obj, name: str, low: int, section: str = "train") -> None:
+    value = getattr(obj, name)
+    if not isinstance(value, int) or isinstance(value, bool) or value < low:
+        raise ConfigError(f"{section}.{name}: {value!r} is not allowed; allowed: an integer >= {low}")
+
+
+def _number(obj, name: str, low: float, high: float, section: str = "train", low_open: bool = False) -> None:
+    value = getattr(obj, name)
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if ok:
+        ok = (low < value if low_open else low <= value) and value <= high
+    if not ok:
+        bound = "(" if low_open else "["
+        raise ConfigError(f"{section}.{name}: {value!r} is not allowed; allowed: a number in {bound}{low}, {high}]")

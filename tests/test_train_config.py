@@ -1,0 +1,56 @@
+"""The training config: defaults, YAML loading, overrides, and one-line errors naming the key."""
+
+import pytest
+
+from formation.config import ConfigError
+from formation.learn.config import RunConfig
+
+
+def one_line_error(values=None, path=None, overrides=None) -> str:
+    with pytest.raises(ConfigError) as err:
+        if path is not None:
+            RunConfig.load(path, overrides)
+        else:
+            RunConfig.from_dict(values)
+    message = str(err.value)
+    assert "\n" not in message
+    return message
+
+
+def test_round_trip_through_a_dict():
+    config = RunConfig.from_dict({"game": {"setting": 2, "obs_type": "grid"}, "train": {"gamma": 0.9}})
+    assert config.game.formation == "vertical" and config.train.gamma == 0.9
+    assert RunConfig.from_dict(config.to_dict()) == config
+
+
+def test_yaml_and_dotted_overrides(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("game:\n  setting: 3\ntrain:\n  n_step: 5\n")
+    config = RunConfig.load(path, {"train.n_step": 2, "game.n_followers": 2, "resources.games_per_actor": 4})
+    assert (config.game.height, config.train.n_step, config.game.n_followers) == (50, 2, 2)
+    assert config.resources.games_per_actor == 4
+
+
+@pytest.mark.parametrize("values, names", [
+    ({"trian": {}}, "trian"),
+    ({"train": {"gama": 0.9}}, "train.gama"),
+    ({"train": {"gamma": 1.5}}, "train.gamma"),
+    ({"train": {"n_step": 0}}, "train.n_step"),
+    ({"train": {"path": "apex"}}, "train.path"),
+    ({"resources": {"games_per_actor": 0}}, "resources.games_per_actor"),
+    ({"game": {"setting": 9}}, "game.setting"),
+    ({"game": {"d_min": 4}}, "game.d_min"),
+    ({"game": {"obs_type": "rgb"}}, "game.obs_type"),
+])
+def test_bad_values_name_the_key(values, names):
+    assert one_line_error(values).startswith(names)
+
+
+def test_missing_file_and_bad_yaml(tmp_path):
+    assert "no such file" in one_line_error(path=tmp_path / "nope.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("train: [1, 2\n")
+    assert "not valid YAML" in one_line_error(path=bad)
+    good = tmp_path / "good.yaml"
+    good.write_text("train: {}\n")
+    assert "section.key" in one_line_error(path=good, overrides={"gamma": 0.5})
