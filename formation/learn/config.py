@@ -21,6 +21,7 @@ from typing import Any
 import yaml
 
 from formation.config import ConfigError, GameConfig
+from formation.learn.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
 
@@ -40,7 +41,10 @@ class TrainSettings:
     epsilon_start: float = 1.0
     epsilon_end: float = 0.05
     epsilon_env_steps: int = 100_000
-    shaping: float = 1.0  # weight of the leader's progress potential; 0 = the paper's reward alone
+    shaping: float = 1.0  # weight of potential-based shaping; 0 = the paper's reward alone
+    potential: str = "distance"  # none | distance | planner (see formation.learn.shaping)
+    planner_slack: int = 6  # planner potential: paths longer than the lower bound + slack count as lost
+    steps_per_sample: int = 8  # steps of all of an actor's games per push to the replay
     demonstrations: float = 0.0  # fraction of games played by the clairvoyant planner
     margin: float = 0.0  # DQfD large-margin loss weight on the planner's steps
     prioritized: bool = False
@@ -63,7 +67,10 @@ class TrainSettings:
         _number(self, "demonstrations", 0.0, 1.0)
         _number(self, "margin", 0.0, math.inf)
         _number(self, "grad_clip", 0.0, math.inf, low_open=True)
-        for name in ("n_step", "batch_size", "replay_capacity", "target_update_every", "hidden",
+        if self.potential not in POTENTIALS:
+            raise ConfigError(f"train.potential: {self.potential!r} is not allowed; allowed: {', '.join(POTENTIALS)}")
+        _integer(self, "planner_slack", 0)
+        for name in ("n_step", "batch_size", "steps_per_sample", "replay_capacity", "target_update_every", "hidden",
                      "total_env_steps", "weights_every_updates", "epsilon_env_steps"):
             _integer(self, name, 1)
         _integer(self, "learning_starts", 0)

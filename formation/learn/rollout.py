@@ -16,8 +16,13 @@ from formation.learn.replay import Chunk
 
 
 class GameRollout:
-    def __init__(self, config: GameConfig, batch_size: int, seed: int | None = None, stream_offset: int = 0):
+    def __init__(self, config: GameConfig, batch_size: int, seed: int | None = None, stream_offset: int = 0,
+                 potential=None, shaping: float = 0.0, gamma: float = 0.99):
+        """``potential`` (a ``formation.learn.shaping.Potential``), if given, adds the shaping term
+        ``shaping * (gamma * Phi(s') - Phi(s))`` to every stored reward (never to the episode
+        statistics, which report the game's own reward)."""
         self.config = config
+        self.potential, self.shaping, self.gamma = potential, shaping, gamma
         self.game = BatchedGame(config, batch_size=batch_size, seed=seed)
         self.game.reset()
         self.observer = Observer(self.game)
@@ -31,6 +36,7 @@ class GameRollout:
         # Episode statistics of games that finished, since the last ``pop_episodes``.
         self._episodes: list[dict] = []
         self._returns = np.zeros((batch_size, self.n_agents))
+        self._phi = potential(self.game) if potential is not None else None
 
     @property
     def frame_shape(self) -> tuple[int, int, int]:
@@ -42,9 +48,14 @@ class GameRollout:
         frames_before, first = self._frames, self._first
         g.step(actions)
         done = g.done.copy()
+        rewards = g.rewards.copy()
+        if self.potential is not None:
+            phi_next = self.potential(g)
+            rewards += self.shaping * (self.gamma * phi_next - self._phi)
+            self._phi = phi_next
         records = Chunk(streams=self.streams, frames=frames_before, first=first,
                         terminal=np.zeros(self.batch_size, bool), actions=np.asarray(actions, np.int8),
-                        rewards=g.rewards.copy(), terminated=g.terminated.copy(), truncated=g.truncated.copy(),
+                        rewards=rewards, terminated=g.terminated.copy(), truncated=g.truncated.copy(),
                         expert=np.zeros(self.batch_size, bool) if expert is None else expert.copy())
         self._returns += g.rewards
         if done.any():
@@ -63,6 +74,8 @@ class GameRollout:
                              truncated=np.zeros(n, bool), expert=np.zeros(n, bool))
             records = concatenate([records, terminal])
             g.reset(mask=done)
+            if self.potential is not None:
+                self._phi[done] = self.potential(g, done)[done]
         self.observations = self.observer.observe(done)
         self._frames = self.observer.renderer.frames.copy()
         self._first = done

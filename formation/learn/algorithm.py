@@ -1,0 +1,260 @@
+"""FormationDQN: the paper's parallel double dueling DQN as an RLlib Algorithm.
+
+Data path: rollout actors (``RolloutActor`` EnvRunners) play batches of games and push records to
+the replay actor(s); the learner (``FormationLearner`` in RLlib's LearnerGroup) pulls batches
+from the replay itself; the driver only starts work, keeps the replay ratio (learner updates
+per env step), forwards weight references and reports metrics.
+
+``build_algorithm_config(run)`` turns a ``RunConfig`` into the RLlib config: one RLModule per
+policy (``leader``, ``follower`` or ``follower_i``) in a MultiRLModuleSpec, mapped from agents by
+``policy_mapping_fn``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import ray
+import torch
+from ray.rllib.algorithms.dqn import DQN, DQNConfig
+from ray.rllib.core import COMPONENT_RL_MODULE
+from ray.rllib.core.columns import Columns
+from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
+from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+from ray.rllib.utils.metrics import LEARNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_NO
+
+from formation.evaluate import play_greedy
+from formation.learn.config import RunConfig
+from formation.learn.learner import FormationLearner
+from formation.learn.module import DuelingQModule
+from formation.learn.replay_actor import ReplayActor
+from formation.learn.rollout_actor import RolloutActor, module_of_agent, spaces_of
+
+
+def policy_mapping_fn(agent_id, episode=None, **kwargs) -> str:
+    """Agents to policies when every agent has its own (``followers_share_policy: false``)."""
+    return agent_id
+
+
+def shared_follower_mapping_fn(agent_id, episode=None, **kwargs) -> str:
+    return "leader" if agent_id == "leader" else "follower"
+
+
+class FormationDQNConfig(DQNConfig):
+    def __init__(self, algo_class=None):
+        super().__init__(algo_class=algo_class or FormationDQN)
+        self.formation_run: dict = RunConfig().to_dict()
+        # our replay lives in its own actor: no local buffer in the driver
+        self.replay_buffer_config = {**self.replay_buffer_config, "no_local_replay_buffer": True}
+
+    def get_default_learner_class(self):
+        return FormationLearner
+
+    @property
+    def run(self) -> RunConfig:
+        return RunConfig.from_dict(self.formation_run)
+
+    # fields the learner reads through its config
+    @property
+    def n_step(self) -> int:
+        return self.run.train.n_step
+
+    @n_step.setter
+    def n_step(self, value) -> None:  # DQNConfig sets a default at construction
+        pass
+
+    @property
+    def margin(self) -> float:
+        return self.run.train.margin
+
+    @property
+    def prioritized(self) -> bool:
+        return self.run.train.prioritized
+
+
+def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLModuleSpec]:
+    """One DuelingQModule spec per policy."""
+    t = run.train
+    obs_space, act_space = spaces_of(run)
+    model_config = {"hidden": t.hidden, "channels": list(t.channels),
+                    "epsilon": [(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)]}
+    return {m: RLModuleSpec(module_class=DuelingQModule, observation_space=obs_space, action_space=act_space,
+                            model_config=dict(model_config), inference_only=inference_only)
+            for m in sorted(set(module_of_agent(run)))}
+
+
+def build_algorithm_config(run: RunConfig) -> FormationDQNConfig:
+    t, res = run.train, run.resources
+    specs = module_specs(run)
+    modules = sorted(specs)
+    mapping = shared_follower_mapping_fn if t.followers_share_policy else policy_mapping_fn
+    config = (
+        FormationDQNConfig()
+        .environment(env=None, env_config={})
+        .env_runners(env_runner_cls=RolloutActor, num_env_runners=res.num_rollout_actors,
+                     num_cpus_per_env_runner=res.cpus_per_rollout_actor, create_local_env_runner=False,
+                     max_requests_in_flight_per_env_runner=2)
+        .learners(num_learners=1, num_gpus_per_learner=res.num_gpus_per_learner,
+                  num_cpus_per_learner=1 if res.num_gpus_per_learner == 0 else 0)
+        .multi_agent(policies=set(modules), policy_mapping_fn=mapping)
+        .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs=specs))
+        .training(lr=t.lr, gamma=t.gamma, train_batch_size=t.batch_size,
+                  target_network_update_freq=t.target_update_every, tau=1.0, grad_clip=t.grad_clip,
+                  grad_clip_by="global_norm")
+        .reporting(min_sample_timesteps_per_iteration=0, min_time_s_per_iteration=1.0)
+        .fault_tolerance(restart_failed_env_runners=True, delay_between_env_runner_restarts_s=1.0)
+        .debugging(seed=t.seed)
+    )
+    config.formation_run = run.to_dict()
+    return config
+
+
+class FormationDQN(DQN):
+    @classmethod
+    def get_default_config(cls) -> FormationDQNConfig:
+        return FormationDQNConfig()
+
+    def setup(self, config: FormationDQNConfig) -> None:
+        super().setup(config)
+        run = self.run = config.run
+        frame_shape = _frame_shape(run)
+        self.replays = [ReplayActor.remote(max(1, run.train.replay_capacity // run.resources.num_replay_shards),
+                                           frame_shape, 1 + run.game.n_followers, run.game.frame_stack,
+                                           seed=run.train.seed + i, prioritized=run.train.prioritized)
+                        for i in range(run.resources.num_replay_shards)]
+        self.counters = {"env_steps": 0, "updates": 0, "episodes": 0, "weights_pushed_at": 0,
+                         "next_eval_at": run.eval.every_env_steps}
+        self.last_eval: dict = {}
+        self._replay_ready = False
+        self._started = time.perf_counter()
+        self._share_replays()
+
+    # -- wiring
+    def _share_replays(self, runner_ids=None) -> None:
+        replays = self.replays
+        n = len(replays)
+        self.env_runner_group.foreach_env_runner(
+            lambda runner: runner.set_replay(replays[(getattr(runner, "worker_index", 0) or 0) % n]),
+            remote_worker_ids=runner_ids, local_env_runner=False)
+        agents = module_of_agent(self.run)
+        self.learner_group.foreach_learner(lambda learner: learner.set_replays(replays, agents))
+
+    def restore_env_runners(self, env_runner_group):
+        restored = super().restore_env_runners(env_runner_group)
+        if restored:  # a restarted actor is a fresh process: hand it the replay and the weights again
+            self._share_replays(restored)
+            self._push_weights(restored)
+        return restored
+
+    def _push_weights(self, runner_ids=None) -> None:
+        ref, seq = self.learner_group.foreach_learner(
+            lambda learner: (ray.put(learner.get_state(components=COMPONENT_RL_MODULE, inference_only=True)
+                                     [COMPONENT_RL_MODULE]), learner._weights_seq_no)).result_or_errors[0].get()
+        state = {COMPONENT_RL_MODULE: ref, WEIGHTS_SEQ_NO: seq,
+                 NUM_ENV_STEPS_SAMPLED_LIFETIME: self.counters["env_steps"]}
+        self.env_runner_group.foreach_env_runner("set_state", kwargs={"state": state}, remote_worker_ids=runner_ids,
+                                                 local_env_runner=False, timeout_seconds=0.0)
+
+    # -- one training step
+    def training_step(self) -> None:
+        t, c = self.run.train, self.counters
+        owed = t.replay_ratio * c["env_steps"] - c["updates"]
+        updates_per_call = max(1, min(64, int(round(t.replay_ratio * t.steps_per_sample
+                                                    * self.run.resources.games_per_actor))))
+        learning = self._learning_ready()
+        # Sampling runs ahead of the learner by at most a few calls, so the ratio holds.
+        if not learning or owed < 4 * updates_per_call:
+            self.env_runner_group.foreach_env_runner_async("sample", tag="sample")
+        for _, result in self.env_runner_group.fetch_ready_async_reqs(tags="sample", timeout_seconds=0.01):
+            c["env_steps"] += result["env_steps"]
+            self._log_episodes(result["episodes"])
+        owed = t.replay_ratio * c["env_steps"] - c["updates"]
+        if learning and owed >= 1:
+            n = int(min(owed, updates_per_call))
+            results = self.learner_group.foreach_learner(lambda learner, n=n: learner.pull_and_update(n))
+            self.metrics.aggregate([r.get() for r in results], key=LEARNER_RESULTS)
+            c["updates"] += n
+            if c["updates"] - c["weights_pushed_at"] >= t.weights_every_updates:
+                self._push_weights()
+                c["weights_pushed_at"] = c["updates"]
+        elif not learning:
+            time.sleep(0.01)
+        if c["env_steps"] >= c["next_eval_at"]:
+            self.last_eval = self.evaluate_greedy()
+            c["next_eval_at"] += self.run.eval.every_env_steps
+        self._log_counters()
+
+    def _learning_ready(self) -> bool:
+        if not self._replay_ready:
+            need = max(self.run.train.learning_starts, self.run.train.batch_size)
+            self._replay_ready = all(ray.get([r.ready.remote(need) for r in self.replays]))
+        return self._replay_ready
+
+    def _log_episodes(self, episodes: list[dict]) -> None:
+        m = self.metrics
+        for e in episodes:
+            self.counters["episodes"] += 1
+            for key in ("success", "reached", "collided", "broken", "truncated"):
+                m.log_value(("explore", key), float(e[key]), window=500)
+            m.log_value(("explore", "episode_steps"), e["steps"], window=500)
+            for name, value in zip(self.run.game.agent_names, e["returns"]):
+                m.log_value(("explore", f"return_{name}"), value, window=500)
+
+    def _log_counters(self) -> None:
+        c = self.counters
+        elapsed = time.perf_counter() - self._started
+        m = self.metrics
+        m.log_value("env_steps", c["env_steps"], window=1)
+        m.log_value("learner_updates", c["updates"], window=1)
+        m.log_value("episodes", c["episodes"], window=1)
+        m.log_value(NUM_ENV_STEPS_SAMPLED_LIFETIME, c["env_steps"], window=1)
+        m.log_value("session_seconds", elapsed, window=1)
+        for key, value in self.last_eval.items():
+            if isinstance(value, int | float):
+                m.log_value(("greedy", key), value, window=1)
+
+    # -- greedy evaluation (the same code as `formation evaluate`)
+    def evaluate_greedy(self, episodes: int | None = None, seed: int | None = None) -> dict:
+        run = self.run
+        modules = self.local_modules()
+        names = module_of_agent(run)
+        used = sorted(set(names))
+
+        def act(obs: np.ndarray) -> np.ndarray:
+            x = torch.from_numpy(obs)
+            with torch.no_grad():
+                greedy = {m: modules[m].forward_inference({Columns.OBS: x})[Columns.ACTIONS].numpy() for m in used}
+            return np.stack([greedy[m] for m in names], axis=1)
+
+        result = play_greedy(run.game, act, episodes or run.eval.episodes, run.eval.seed if seed is None else seed)
+        return result["summary"]
+
+    def local_modules(self) -> dict:
+        """CPU copies of the learner's current modules."""
+        weights = self.learner_group.foreach_learner(
+            lambda learner: learner.get_state(components=COMPONENT_RL_MODULE, inference_only=True)
+            [COMPONENT_RL_MODULE]).result_or_errors[0].get()
+        multi = MultiRLModuleSpec(rl_module_specs=module_specs(self.run, inference_only=True)).build()
+        multi.set_state(weights)
+        return {m: multi[m] for m in multi.keys()}
+
+    # -- checkpoints: our counters ride along in algorithm_state.pkl
+    def get_state(self, *args, **kwargs):
+        state = super().get_state(*args, **kwargs)
+        state["formation_counters"] = dict(self.counters)
+        state["formation_last_eval"] = dict(self.last_eval)
+        return state
+
+    def set_state(self, state, *args, **kwargs):
+        super().set_state(state, *args, **kwargs)
+        if "formation_counters" in state:
+            self.counters.update(state["formation_counters"])
+            self.last_eval = dict(state.get("formation_last_eval", {}))
+            self._push_weights()
+
+
+def _frame_shape(run: RunConfig) -> tuple[int, int, int]:
+    obs_space, _ = spaces_of(run)
+    h, w, c = obs_space.shape
+    return (h, w, c // run.game.frame_stack)

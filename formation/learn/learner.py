@@ -1,0 +1,115 @@
+"""The learner: pulls batches from the replay actor itself and updates every agent's DQN.
+
+It runs inside RLlib's LearnerGroup (a Ray actor, on a GPU when the config asks), so batches go
+replay actor -> learner without passing the driver. The next batch is requested before the
+current one is used (prefetch), so the learner rarely waits on the replay.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import ray
+import torch
+from ray.rllib.algorithms.dqn.dqn_learner import QF_NEXT_PREDS, QF_PREDS, QF_TARGET_NEXT_PREDS
+from ray.rllib.algorithms.dqn.torch.dqn_torch_learner import DQNTorchLearner
+from ray.rllib.core.columns import Columns
+from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
+from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
+
+from formation.learn.qnet import double_q_target
+
+RETURNS, DISCOUNTS, EXPERT, WEIGHTS = "n_step_returns", "n_step_discounts", "expert", "weights"
+MARGIN = 0.8  # DQfD's margin between the demonstrator's action and any other
+
+
+def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str]) -> dict[str, dict[str, np.ndarray]]:
+    """Split a replay sample (all agents) into one batch per module; agents that share a module
+    (followers with one policy) contribute one row each for every sampled step."""
+    rows: dict[str, list[int]] = {}
+    for agent, module in enumerate(module_of_agent):
+        rows.setdefault(module, []).append(agent)
+    out = {}
+    for module, agents in rows.items():
+        copies = len(agents)
+        out[module] = {Columns.OBS: np.concatenate([sample["obs"]] * copies),
+                       Columns.NEXT_OBS: np.concatenate([sample["next_obs"]] * copies),
+                       Columns.ACTIONS: np.concatenate([sample["actions"][:, a] for a in agents]),
+                       RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
+                       DISCOUNTS: np.concatenate([sample["discounts"]] * copies),
+                       EXPERT: np.concatenate([sample["expert"]] * copies),
+                       WEIGHTS: np.concatenate([sample["weights"]] * copies)}
+    return out
+
+
+class FormationLearner(DQNTorchLearner):
+    _replays: list = []
+
+    def set_replays(self, handles: list, module_of_agent: list[str]) -> bool:
+        self._replays = list(handles)
+        self._module_of_agent = list(module_of_agent)
+        self._prefetch = None
+        self._turn = 0
+        self._td: dict[str, np.ndarray] = {}
+        self.num_updates = getattr(self, "num_updates", 0)
+        return True
+
+    def compute_loss_for_module(self, *, module_id: str, config: Any, batch: dict[str, Any],
+                                fwd_out: dict[str, Any]) -> torch.Tensor:
+        q = fwd_out[QF_PREDS]
+        actions = batch[Columns.ACTIONS].long().unsqueeze(1)
+        q_taken = q.gather(1, actions).squeeze(1)
+        with torch.no_grad():
+            y = double_q_target(batch[RETURNS], batch[DISCOUNTS], fwd_out[QF_NEXT_PREDS], fwd_out[QF_TARGET_NEXT_PREDS])
+        td = q_taken - y
+        loss = (batch[WEIGHTS] * torch.nn.functional.smooth_l1_loss(q_taken, y, reduction="none")).mean()
+        if config.margin > 0:
+            expert = batch[EXPERT].bool()
+            if expert.any():
+                # DQfD: J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E) on the demonstrator's steps
+                margins = torch.full_like(q, MARGIN).scatter(1, actions, 0.0)
+                large_margin = (q + margins).max(1).values - q_taken
+                loss = loss + config.margin * large_margin[expert].mean()
+        self._td[module_id] = td.detach().abs().cpu().numpy()
+        self.metrics.log_value((module_id, "q_mean"), q_taken.detach().mean(), window=1)
+        self.metrics.log_value((module_id, "td_abs_mean"), td.detach().abs().mean(), window=1)
+        return loss
+
+    def _request(self, batch_size: int, n_step: int, gamma: float):
+        replay = self._replays[self._turn % len(self._replays)]
+        self._turn += 1
+        return replay, replay.sample.remote(batch_size, n_step, gamma)
+
+    def pull_and_update(self, num_updates: int) -> dict:
+        """Run ``num_updates`` updates on batches pulled from the replay; return reduced metrics."""
+        cfg = self.config
+        for _ in range(num_updates):
+            if self._prefetch is None:
+                self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma)
+            replay, ref = self._prefetch
+            sample = ray.get(ref)
+            self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma)
+            batches = module_batches(sample, self._module_of_agent)
+            n = len(sample["ids"])
+            batch = MultiAgentBatch({m: SampleBatch(b) for m, b in batches.items()}, env_steps=n)
+            # DQNLearner syncs target networks by this count: ours counts learner updates.
+            self.update(batch=batch, timesteps={NUM_ENV_STEPS_SAMPLED_LIFETIME: self.num_updates},
+                        _no_metrics_reduce=True)
+            self.num_updates += 1
+            if cfg.prioritized:
+                td = np.stack([self._td[m].reshape(-1, n).max(0) for m in batches]).max(0)
+                replay.update_priorities.remote(sample["ids"], td)
+        return self.metrics.reduce()
+
+    def get_state(self, components=None, *, not_components=None, **kwargs):
+        state = super().get_state(components, not_components=not_components, **kwargs)
+        # DQNLearner keeps its target-sync bookkeeping outside its state: save it ourselves.
+        state["last_target_update"] = dict(self.last_update_ts_by_mid)
+        state["num_updates"] = getattr(self, "num_updates", 0)
+        return state
+
+    def set_state(self, state) -> None:
+        super().set_state(state)
+        self.last_update_ts_by_mid.update(state.get("last_target_update", {}))
+        self.num_updates = state.get("num_updates", getattr(self, "num_updates", 0))

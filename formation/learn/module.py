@@ -1,0 +1,65 @@
+"""The RLlib module of one agent: a dueling Q-network with a target copy (``DuelingQModule``).
+
+It implements RLlib's ``QNetAPI`` and ``TargetNetworkAPI``, so RLlib's DQN learner (the stock
+path) and ours both train it, and ``InferenceOnlyAPI``, so rollout actors get weights without
+the target network. ``model_config``: ``hidden``, ``channels`` (see ``formation.learn.qnet``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from ray.rllib.algorithms.dqn.dqn_learner import QF_NEXT_PREDS, QF_PREDS, QF_TARGET_NEXT_PREDS
+from ray.rllib.core.columns import Columns
+from ray.rllib.core.learner.utils import make_target_network
+from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, QNetAPI, TargetNetworkAPI
+from ray.rllib.core.rl_module.torch import TorchRLModule
+from ray.rllib.utils.schedules.scheduler import Scheduler
+
+from formation.learn.qnet import DuelingQNetwork
+
+
+class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI):
+    def setup(self) -> None:
+        space = self.observation_space
+        cfg = self.model_config or {}
+        self.q_network = DuelingQNetwork(space.shape, high=float(space.high.max()), hidden=int(cfg.get("hidden", 128)),
+                                         channels=tuple(cfg.get("channels", (16, 32, 32))))
+        # RLlib's DQNConfig puts an epsilon schedule into every module's model_config.
+        self.epsilon_schedule = Scheduler(fixed_value_or_schedule=cfg.get("epsilon", 0.05), framework="torch")
+
+    # -- QNetAPI
+    def compute_q_values(self, batch: dict[str, Any]) -> dict[str, Any]:
+        return {QF_PREDS: self.q_network(batch[Columns.OBS])}
+
+    # -- TargetNetworkAPI
+    def make_target_networks(self) -> None:
+        self._target_q_network = make_target_network(self.q_network)
+
+    def get_target_network_pairs(self):
+        return [(self.q_network, self._target_q_network)]
+
+    def forward_target(self, batch: dict[str, Any]) -> dict[str, Any]:
+        return {QF_PREDS: self._target_q_network(batch[Columns.OBS])}
+
+    # -- InferenceOnlyAPI
+    def get_non_inference_attributes(self) -> list[str]:
+        return ["_target_q_network"]
+
+    # -- forward passes
+    def _forward_inference(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
+        return {Columns.ACTIONS: self.q_network(batch[Columns.OBS]).argmax(dim=-1)}
+
+    def _forward_exploration(self, batch: dict[str, Any], t: int = 0, **kwargs) -> dict[str, Any]:
+        greedy = self.q_network(batch[Columns.OBS]).argmax(dim=-1)
+        self.epsilon_schedule.update(t)
+        eps = self.epsilon_schedule.get_current_value()
+        explore = torch.rand(greedy.shape, device=greedy.device) < eps
+        random = torch.randint(0, 4, greedy.shape, device=greedy.device)
+        return {Columns.ACTIONS: torch.where(explore, random, greedy)}
+
+    def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
+        obs, next_obs = batch[Columns.OBS], batch[Columns.NEXT_OBS]
+        q, q_next = torch.chunk(self.q_network(torch.cat([obs, next_obs])), 2)
+        return {QF_PREDS: q, QF_NEXT_PREDS: q_next, QF_TARGET_NEXT_PREDS: self._target_q_network(next_obs)}
