@@ -56,6 +56,17 @@ def cmd_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    """Train from a config; checkpoints and metrics go to --out."""
+    from formation.train import train
+
+    try:
+        train(args.config, args.out, resume=args.resume, overrides=parse_overrides(args.set))
+    except KeyboardInterrupt:
+        return 130
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="formation", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -68,6 +79,14 @@ def build_parser() -> argparse.ArgumentParser:
     show.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                       help="override a game config field, e.g. --set n_followers=2")
     show.set_defaults(run=cmd_show)
+
+    train = sub.add_parser("train", help="train the leader and follower policies from a config")
+    train.add_argument("config", nargs="?", help="a YAML config, e.g. configs/quickstart.yaml")
+    train.add_argument("--out", help="run folder (default runs/<config name>)")
+    train.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    train.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                       help="override a config value, e.g. --set train.gamma=0.99")
+    train.set_defaults(run=cmd_train)
     return parser
 
 

@@ -1,0 +1,189 @@
+"""``formation train``: run FormationDQN from a config until its env-step budget, with progress,
+metrics (JSON lines and TensorBoard), checkpoints, and resume.
+
+Run folder (``--out``): ``config.yaml`` (the resolved config), ``metrics.jsonl`` (one line per
+iteration), ``tb/`` (TensorBoard), ``checkpoint/`` (RLlib's own format, the latest), and
+``result.json`` (the final greedy evaluation).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from formation.config import ConfigError
+from formation.learn.config import RunConfig
+
+CHECKPOINT = "checkpoint"
+RESUMABLE = {"train.total_env_steps"}  # what --set may change when resuming
+
+
+class Stop(Exception):
+    """Raised by the SIGTERM handler so that training stops like on Ctrl-C."""
+
+
+def flatten(d: dict, prefix: str = "") -> dict[str, Any]:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(flatten(v, key + "/"))
+        elif isinstance(v, int | float) and not isinstance(v, bool):
+            out[key] = float(v)
+    return out
+
+
+def start_ray(run: RunConfig) -> None:
+    import ray
+
+    if ray.is_initialized():
+        return
+    if os.environ.get("RAY_ADDRESS"):  # inside `ray job submit`: join the cluster
+        ray.init()
+    else:  # a laptop: a local Ray sized to the machine, no dashboard
+        ray.init(num_cpus=os.cpu_count() or 2, include_dashboard=False, log_to_driver=False)
+
+
+def checkpoint_path(out: Path) -> Path:
+    return out / CHECKPOINT
+
+
+def save_checkpoint(algo, out: Path) -> Path:
+    """Write the checkpoint next to the old one, then swap, so a crash never leaves none."""
+    final = checkpoint_path(out)
+    fresh = out / f"{CHECKPOINT}.writing"
+    shutil.rmtree(fresh, ignore_errors=True)
+    algo.save_to_path(str(fresh.resolve()))
+    old = out / f"{CHECKPOINT}.old"
+    shutil.rmtree(old, ignore_errors=True)
+    if final.exists():
+        final.rename(old)
+    fresh.rename(final)
+    shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+class Progress:
+    """One status line, rewritten in place on a terminal and printed every ``every`` s otherwise."""
+
+    def __init__(self, total: int, every: float = 30.0):
+        self.total, self.every, self.last = total, every, 0.0
+        self.tty = sys.stdout.isatty()
+
+    def show(self, env_steps: int, greedy: float | None, steps_per_s: float, final: bool = False) -> None:
+        now = time.monotonic()
+        if not (self.tty or final or now - self.last >= self.every):
+            return
+        self.last = now
+        frac = min(1.0, env_steps / self.total)
+        bar = "#" * int(frac * 30)
+        greedy_text = f"{greedy:6.1%}" if greedy is not None else "   n/a"
+        line = (f"[{bar:30s}] {env_steps:>9,}/{self.total:,} env steps  greedy success {greedy_text}  "
+                f"{steps_per_s:7,.0f} steps/s")
+        print(("\r" if self.tty else "") + line, end="\n" if (final or not self.tty) else "", flush=True)
+
+
+def train(config_path: str | None, out: str | None, resume: bool = False, overrides: dict | None = None,
+          quiet: bool = False) -> dict:
+    """Train; returns the final greedy evaluation summary. Bad input raises ConfigError before Ray starts."""
+    out_dir = Path(out) if out else Path("runs") / (Path(config_path).stem if config_path else "run")
+    if resume:
+        saved = out_dir / "config.yaml"
+        if not checkpoint_path(out_dir).is_dir() or not saved.is_file():
+            raise ConfigError(f"--resume: no checkpoint to resume in {str(out_dir)!r} "
+                              f"(expected {str(checkpoint_path(out_dir))!r}); train without --resume first")
+        changed = sorted(set(overrides or {}) - RESUMABLE)
+        if changed:
+            raise ConfigError(f"--resume: --set {changed[0]} would change the run being resumed; "
+                              f"allowed: {', '.join(sorted(RESUMABLE))}")
+        run = RunConfig.load(saved, overrides)
+    else:
+        if config_path is None:
+            raise ConfigError("config: give a config file, e.g. configs/quickstart.yaml")
+        run = RunConfig.load(config_path, overrides)
+        if checkpoint_path(out_dir).exists():
+            raise ConfigError(f"--out: {str(out_dir)!r} already holds a run; use --resume to continue it "
+                              "or choose another --out")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "config.yaml").write_text(yaml.safe_dump(run.to_dict(), sort_keys=False))
+
+    start_ray(run)
+    from ray.rllib.algorithms.algorithm import Algorithm
+
+    from formation.learn.algorithm import build_algorithm_config
+
+    if resume:
+        algo = Algorithm.from_checkpoint(str(checkpoint_path(out_dir).resolve()))
+    else:
+        algo = build_algorithm_config(run).build_algo()
+
+    from tensorboardX import SummaryWriter
+
+    writer = SummaryWriter(str(out_dir / "tb"))
+    metrics_file = (out_dir / "metrics.jsonl").open("a")
+    progress = Progress(run.train.total_env_steps)
+    previous_handler = signal.signal(signal.SIGTERM, _raise_stop)
+    iteration = 0
+    started, at_start = time.perf_counter(), dict(algo.counters)
+    try:
+        while algo.counters["env_steps"] < run.train.total_env_steps:
+            result = algo.train()
+            iteration += 1
+            row = _metrics_row(algo, result, started, at_start)
+            metrics_file.write(json.dumps(row) + "\n")
+            metrics_file.flush()
+            for key, value in row.items():
+                writer.add_scalar(key, value, int(row["env_steps"]))
+            if not quiet:
+                progress.show(int(row["env_steps"]), algo.last_eval.get("success"), row["env_steps_per_s"])
+            if iteration % run.checkpoint.every_iterations == 0:
+                save_checkpoint(algo, out_dir)
+        summary = algo.evaluate_greedy()
+        algo.last_eval = summary
+        save_checkpoint(algo, out_dir)
+    except (KeyboardInterrupt, Stop):
+        save_checkpoint(algo, out_dir)
+        print(f"\nstopped: checkpoint saved in {checkpoint_path(out_dir)}; continue with --resume", file=sys.stderr)
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous_handler)
+        metrics_file.close()
+        writer.close()
+        algo.stop()
+    (out_dir / "result.json").write_text(json.dumps({"env_steps": algo.counters["env_steps"],
+                                                     "greedy": summary}, indent=2))
+    if not quiet:
+        progress.show(algo.counters["env_steps"], summary["success"], 0.0, final=True)
+        print(f"greedy success {summary['success']:.1%} on {summary['episodes']} held-out scenarios; "
+              f"run folder {out_dir}")
+    return summary
+
+
+def _raise_stop(signum, frame):
+    raise Stop()
+
+
+def _metrics_row(algo, result: dict, started: float, at_start: dict) -> dict[str, float]:
+    c = algo.counters
+    elapsed = max(time.perf_counter() - started, 1e-9)
+    row = {"env_steps": c["env_steps"], "learner_updates": c["updates"], "episodes": c["episodes"],
+           "env_steps_per_s": (c["env_steps"] - at_start["env_steps"]) / elapsed,
+           "learner_updates_per_s": (c["updates"] - at_start["updates"]) / elapsed,
+           "seconds": elapsed, "training_iteration": result.get("training_iteration", 0)}
+    row.update({f"explore/{k}": v for k, v in flatten(result.get("explore", {})).items()})
+    row.update({f"greedy/{k}": v for k, v in flatten(algo.last_eval).items()})
+    learner = result.get("learners", {})
+    for module, values in learner.items():
+        if isinstance(values, dict):
+            for key in ("q_mean", "td_abs_mean", "total_loss"):
+                if key in values:
+                    row[f"learner/{module}/{key}"] = float(values[key])
+    return row
