@@ -12,6 +12,7 @@ policy (``leader``, ``follower`` or ``follower_i``) in a MultiRLModuleSpec, mapp
 
 from __future__ import annotations
 
+import pickle
 import time
 
 import numpy as np
@@ -123,7 +124,8 @@ class FormationDQN(DQN):
                                            frame_shape, 1 + run.game.n_followers, run.game.frame_stack,
                                            seed=run.train.seed + i, prioritized=run.train.prioritized)
                         for i in range(run.resources.num_replay_shards)]
-        self.counters = {"env_steps": 0, "updates": 0, "episodes": 0, "weights_pushed_at": 0,
+        # driver_bytes: pickled size of all that rollout actors and the learner returned to the driver
+        self.counters = {"env_steps": 0, "updates": 0, "episodes": 0, "weights_pushed_at": 0, "driver_bytes": 0,
                          "next_eval_at": run.eval.every_env_steps}
         self.last_eval: dict = {}
         self._replay_ready = False
@@ -168,12 +170,15 @@ class FormationDQN(DQN):
             self.env_runner_group.foreach_env_runner_async("sample", tag="sample")
         for _, result in self.env_runner_group.fetch_ready_async_reqs(tags="sample", timeout_seconds=0.01):
             c["env_steps"] += result["env_steps"]
+            c["driver_bytes"] += len(pickle.dumps(result))
             self._log_episodes(result["episodes"])
         owed = t.replay_ratio * c["env_steps"] - c["updates"]
         if learning and owed >= 1:
             n = int(min(owed, updates_per_call))
-            results = self.learner_group.foreach_learner(lambda learner, n=n: learner.pull_and_update(n))
-            self.metrics.aggregate([r.get() for r in results], key=LEARNER_RESULTS)
+            results = [r.get() for r in self.learner_group.foreach_learner(
+                lambda learner, n=n: learner.pull_and_update(n))]
+            c["driver_bytes"] += len(pickle.dumps(results))
+            self.metrics.aggregate(results, key=LEARNER_RESULTS)
             c["updates"] += n
             if c["updates"] - c["weights_pushed_at"] >= t.weights_every_updates:
                 self._push_weights()
@@ -245,6 +250,9 @@ class FormationDQN(DQN):
         state["formation_counters"] = dict(self.counters)
         state["formation_last_eval"] = dict(self.last_eval)
         return state
+
+    def replay_stats(self) -> list[dict]:
+        return ray.get([r.stats.remote() for r in self.replays])
 
     def set_state(self, state, *args, **kwargs):
         super().set_state(state, *args, **kwargs)
