@@ -23,7 +23,13 @@ from ray.rllib.core import COMPONENT_RL_MODULE
 from ray.rllib.core.columns import Columns
 from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
-from ray.rllib.utils.metrics import LEARNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_NO
+from ray.rllib.utils.metrics import (
+    ENV_RUNNER_RESULTS,
+    LEARNER_RESULTS,
+    NUM_ENV_STEPS_SAMPLED_LIFETIME,
+    NUM_EPISODES_LIFETIME,
+    WEIGHTS_SEQ_NO,
+)
 
 from formation.evaluate import play_greedy
 from formation.learn.config import RunConfig
@@ -85,7 +91,57 @@ def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLMo
             for m in sorted(set(module_of_agent(run)))}
 
 
-def build_algorithm_config(run: RunConfig) -> FormationDQNConfig:
+class StockFormationDQNConfig(DQNConfig):
+    def __init__(self, algo_class=None):
+        super().__init__(algo_class=algo_class or StockFormationDQN)
+        self.formation_run: dict = RunConfig().to_dict()
+
+    @property
+    def run(self) -> RunConfig:
+        return RunConfig.from_dict(self.formation_run)
+
+
+def build_stock_config(run: RunConfig) -> StockFormationDQNConfig:
+    """RLlib's DQN on the RLlib view of the game, with our modules and the same replay ratio."""
+    from formation.env.rllib import register
+
+    t, res = run.train, run.resources
+    mapping = shared_follower_mapping_fn if t.followers_share_policy else policy_mapping_fn
+    fragment = t.steps_per_sample
+    config = (
+        StockFormationDQNConfig()
+        .environment(register(), env_config=run.game.to_dict())
+        .env_runners(num_env_runners=res.num_rollout_actors, num_cpus_per_env_runner=res.cpus_per_rollout_actor,
+                     num_envs_per_env_runner=res.games_per_actor, rollout_fragment_length=fragment,
+                     create_local_env_runner=res.num_rollout_actors == 0)
+        .learners(num_learners=0 if res.num_gpus_per_learner == 0 else 1, num_gpus_per_learner=res.num_gpus_per_learner)
+        .multi_agent(policies=set(module_specs(run)), policy_mapping_fn=mapping)
+        .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs=module_specs(run)))
+        .training(lr=t.lr, gamma=t.gamma, train_batch_size=t.batch_size, n_step=t.n_step, double_q=True, dueling=True,
+                  target_network_update_freq=int(t.target_update_every / t.replay_ratio), tau=1.0,
+                  grad_clip=t.grad_clip, grad_clip_by="global_norm",
+                  num_steps_sampled_before_learning_starts=t.learning_starts,
+                  # RLlib samples once from every runner, then runs training_intensity / native ratio
+                  # updates, where its native ratio counts one runner more than there are
+                  training_intensity=t.replay_ratio * t.batch_size * max(res.num_rollout_actors, 1)
+                  / (res.num_rollout_actors + 1),
+                  epsilon=[(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)],
+                  replay_buffer_config={"type": "MultiAgentEpisodeReplayBuffer", "capacity": t.replay_capacity})
+        .reporting(min_sample_timesteps_per_iteration=0, min_time_s_per_iteration=1.0)
+        .debugging(seed=t.seed)
+    )
+    config.formation_run = run.to_dict()
+    return config
+
+
+def build_algorithm_config(run: RunConfig):
+    """The RLlib config of the run's path: ``formation`` (ours) or ``stock`` (RLlib's DQN)."""
+    if run.train.path == "stock":
+        return build_stock_config(run)
+    return build_formation_config(run)
+
+
+def build_formation_config(run: RunConfig) -> FormationDQNConfig:
     t, res = run.train, run.resources
     specs = module_specs(run)
     modules = sorted(specs)
@@ -111,7 +167,57 @@ def build_algorithm_config(run: RunConfig) -> FormationDQNConfig:
     return config
 
 
-class FormationDQN(DQN):
+class GreedyEvaluationMixin:
+    """What both paths share: counters, greedy evaluation, and their place in checkpoints."""
+
+    # -- greedy evaluation (the same code as `formation evaluate`)
+    def evaluate_greedy(self, episodes: int | None = None, seed: int | None = None) -> dict:
+        run = self.run
+        modules = self.local_modules()
+        names = module_of_agent(run)
+        used = sorted(set(names))
+
+        def act(obs: np.ndarray) -> np.ndarray:
+            x = torch.from_numpy(obs)
+            with torch.no_grad():
+                greedy = {m: modules[m].forward_inference({Columns.OBS: x})[Columns.ACTIONS].numpy() for m in used}
+            return np.stack([greedy[m] for m in names], axis=1)
+
+        result = play_greedy(run.game, act, episodes or run.eval.episodes, run.eval.seed if seed is None else seed)
+        return result["summary"]
+
+    def local_modules(self) -> dict:
+        """CPU copies of the learner's current modules."""
+        weights = self.learner_group.foreach_learner(
+            lambda learner: learner.get_state(components=COMPONENT_RL_MODULE, inference_only=True)
+            [COMPONENT_RL_MODULE]).result_or_errors[0].get()
+        multi = MultiRLModuleSpec(rl_module_specs=module_specs(self.run, inference_only=True)).build()
+        multi.set_state(weights)
+        return {m: multi[m] for m in multi.keys()}
+
+    # -- checkpoints: our counters ride along in algorithm_state.pkl
+    def get_state(self, *args, **kwargs):
+        state = super().get_state(*args, **kwargs)
+        state["formation_counters"] = dict(self.counters)
+        state["formation_last_eval"] = dict(self.last_eval)
+        return state
+
+    def replay_stats(self) -> list[dict]:
+        return ray.get([r.stats.remote() for r in self.replays])
+
+    def set_state(self, state, *args, **kwargs):
+        super().set_state(state, *args, **kwargs)
+        if "formation_counters" in state:
+            self.counters.update(state["formation_counters"])
+            self.last_eval = dict(state.get("formation_last_eval", {}))
+            self._after_restore()
+
+
+    def _after_restore(self) -> None:
+        pass
+
+
+class FormationDQN(GreedyEvaluationMixin, DQN):
     @classmethod
     def get_default_config(cls) -> FormationDQNConfig:
         return FormationDQNConfig()
@@ -131,6 +237,9 @@ class FormationDQN(DQN):
         self._replay_ready = False
         self._started = time.perf_counter()
         self._share_replays()
+
+    def _after_restore(self) -> None:
+        self._push_weights()
 
     # -- wiring
     def _share_replays(self, runner_ids=None) -> None:
@@ -219,47 +328,33 @@ class FormationDQN(DQN):
             if isinstance(value, int | float):
                 m.log_value(("greedy", key), value, window=1)
 
-    # -- greedy evaluation (the same code as `formation evaluate`)
-    def evaluate_greedy(self, episodes: int | None = None, seed: int | None = None) -> dict:
-        run = self.run
-        modules = self.local_modules()
-        names = module_of_agent(run)
-        used = sorted(set(names))
+class StockFormationDQN(GreedyEvaluationMixin, DQN):
+    """RLlib's own DQN training step (its EnvRunners, episode replay buffer and DQN loss) on the
+    same game, modules and replay ratio: the reference the data path is measured against."""
 
-        def act(obs: np.ndarray) -> np.ndarray:
-            x = torch.from_numpy(obs)
-            with torch.no_grad():
-                greedy = {m: modules[m].forward_inference({Columns.OBS: x})[Columns.ACTIONS].numpy() for m in used}
-            return np.stack([greedy[m] for m in names], axis=1)
+    def setup(self, config) -> None:
+        super().setup(config)
+        self.run = config.run
+        self.counters = {"env_steps": 0, "updates": 0, "episodes": 0, "driver_bytes": 0,
+                         "next_eval_at": self.run.eval.every_env_steps}
+        self.last_eval: dict = {}
+        self._started = time.perf_counter()
+        update = self.learner_group.update
 
-        result = play_greedy(run.game, act, episodes or run.eval.episodes, run.eval.seed if seed is None else seed)
-        return result["summary"]
+        def counted_update(*args, **kwargs):
+            self.counters["updates"] += 1
+            return update(*args, **kwargs)
 
-    def local_modules(self) -> dict:
-        """CPU copies of the learner's current modules."""
-        weights = self.learner_group.foreach_learner(
-            lambda learner: learner.get_state(components=COMPONENT_RL_MODULE, inference_only=True)
-            [COMPONENT_RL_MODULE]).result_or_errors[0].get()
-        multi = MultiRLModuleSpec(rl_module_specs=module_specs(self.run, inference_only=True)).build()
-        multi.set_state(weights)
-        return {m: multi[m] for m in multi.keys()}
+        self.learner_group.update = counted_update
 
-    # -- checkpoints: our counters ride along in algorithm_state.pkl
-    def get_state(self, *args, **kwargs):
-        state = super().get_state(*args, **kwargs)
-        state["formation_counters"] = dict(self.counters)
-        state["formation_last_eval"] = dict(self.last_eval)
-        return state
-
-    def replay_stats(self) -> list[dict]:
-        return ray.get([r.stats.remote() for r in self.replays])
-
-    def set_state(self, state, *args, **kwargs):
-        super().set_state(state, *args, **kwargs)
-        if "formation_counters" in state:
-            self.counters.update(state["formation_counters"])
-            self.last_eval = dict(state.get("formation_last_eval", {}))
-            self._push_weights()
+    def training_step(self) -> None:
+        super().training_step()
+        c = self.counters
+        c["env_steps"] = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
+        c["episodes"] = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_EPISODES_LIFETIME), default=0))
+        if c["env_steps"] >= c["next_eval_at"]:
+            self.last_eval = self.evaluate_greedy()
+            c["next_eval_at"] += self.run.eval.every_env_steps
 
 
 def _frame_shape(run: RunConfig) -> tuple[int, int, int]:

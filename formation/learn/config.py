@@ -77,6 +77,10 @@ class TrainSettings:
         _integer(self, "seed", 0)
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
+        if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0
+                                     or self.prioritized):
+            raise ConfigError("train.path: stock runs RLlib's DQN on the paper's reward alone; "
+                              "set train.shaping: 0, demonstrations: 0, margin: 0, prioritized: false")
         if len(self.channels) != 3 or not all(isinstance(c, int) and c >= 1 for c in self.channels):
             raise ConfigError(f"train.channels: {list(self.channels)!r} is not allowed; allowed: three integers >= 1")
 
