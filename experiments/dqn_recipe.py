@@ -35,7 +35,11 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--stack", type=int, default=2)
     p.add_argument("--gamma", type=float, default=0.97)
     p.add_argument("--n-step", type=int, default=3)
-    p.add_argument("--shaping", type=float, default=1.0, help="leader potential -dist(leader, destination) weight")
+    p.add_argument("--shaping", type=float, default=1.0, help="weight of the potential-based shaping")
+    p.add_argument("--potential", default="distance", choices=["distance", "planner"],
+                   help="distance: -(leader's steps to the destination ignoring obstacles); "
+                        "planner: -(the planner's shortest remaining path), for both agents")
+    p.add_argument("--planner-slack", type=int, default=6)
     p.add_argument("--demo", type=float, default=0.0, help="fraction of games played by the planner")
     p.add_argument("--margin", type=float, default=0.0, help="DQfD large-margin loss weight on planner steps")
     p.add_argument("--steps", type=int, default=300_000)
@@ -187,8 +191,30 @@ def main() -> None:
     nstep = NStep(args.n_step, args.gamma)
     dest = np.array(config.destination)
 
-    def potential() -> np.ndarray:  # minus the leader's steps to the destination, ignoring obstacles
-        return -np.abs(game.positions[:, 0] - dest).max(axis=1).astype(np.float32)
+    dead = float(config.height + config.width)  # steps-to-go assigned to a lost game
+    capped: dict[int, GameConfig] = {}
+
+    def potential() -> np.ndarray:
+        """Phi(s) per game: minus the steps still needed (the shaping is gamma*Phi(s') - Phi(s))."""
+        if args.potential == "distance":  # the leader's steps to the destination, ignoring obstacles
+            return -np.abs(game.positions[:, 0] - dest).max(axis=1).astype(np.float32)
+        from formation.planner import lower_bound, shortest_path
+
+        phi = np.zeros(B, np.float32)
+        for i in range(B):
+            if game.reached[i] and game.success[i]:
+                continue
+            if game.terminated[i]:
+                phi[i] = -dead
+                continue
+            # A path longer than the bound + slack counts as lost: keeps every call fast.
+            scenario = game.scenario(i)
+            limit = lower_bound(scenario, config) + args.planner_slack
+            if limit not in capped:
+                capped[limit] = config.replace(max_steps=limit)
+            path = shortest_path(scenario, config=capped[limit])
+            phi[i] = -(len(path) if path is not None else dead)
+        return phi
 
     # Planner-driven games: the first round(demo * B) games follow the clairvoyant planner.
     n_demo = int(round(args.demo * B))
@@ -206,6 +232,7 @@ def main() -> None:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     log = open(args.out, "w") if args.out else None  # noqa: SIM115
     env_steps, updates, start = 0, 0, time.perf_counter()
+    phi = potential()
     next_eval = args.eval_every
     episode_success, episodes_done = 0, 0
     while env_steps < args.steps:
@@ -218,10 +245,14 @@ def main() -> None:
         for i in range(n_demo):
             if plans[i]:
                 actions[i] = plans[i].pop(0)
-        phi = potential()
         game.step(actions)
         rewards = game.rewards.copy()
-        rewards[:, 0] += args.shaping * (args.gamma * potential() - phi)
+        phi_next = potential()
+        shaped = args.shaping * (args.gamma * phi_next - phi)
+        if args.potential == "distance":
+            rewards[:, 0] += shaped
+        else:
+            rewards += shaped[:, None]
         done = game.done.copy()
         term, trunc = game.terminated.copy(), game.truncated.copy()
         episodes_done += done.sum()
@@ -230,6 +261,7 @@ def main() -> None:
             game.reset(mask=done)
             for i in np.flatnonzero(done[:n_demo]):
                 plan(int(i))
+        phi = potential() if done.any() else phi_next
         # the observation after the step (before reset) is the n-step target's next state
         next_obs = observer.observe(done).copy()
         # For games that were reset, next_obs shows the new episode; the terminal next state is
