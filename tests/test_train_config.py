@@ -54,3 +54,21 @@ def test_missing_file_and_bad_yaml(tmp_path):
     good = tmp_path / "good.yaml"
     good.write_text("train: {}\n")
     assert "section.key" in one_line_error(path=good, overrides={"gamma": 0.5})
+
+
+def test_every_shipped_config_is_valid():
+    from pathlib import Path
+
+    configs = sorted(Path("configs").glob("*.yaml"))
+    assert {"paper.yaml", "smoke.yaml", "small.yaml"} <= {p.name for p in configs}
+    for path in configs:
+        RunConfig.load(path)
+
+
+def test_paper_config_is_the_papers_table_2():
+    paper = RunConfig.load("configs/paper.yaml")
+    t = paper.train
+    assert (t.batch_size, t.replay_capacity, t.gamma, t.lr, t.epsilon_start, t.epsilon_end) == (
+        32, 50000, 0.99, 1e-4, 1.0, 0.1)
+    assert t.shaping == 0 and paper.game.obs_type == "pixels" and paper.game.frame_stack == 4
+    assert paper.game.max_steps == 200 and paper.game.reward_reach == 50
