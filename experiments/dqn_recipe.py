@@ -40,6 +40,11 @@ def parse_args() -> argparse.Namespace:
                    help="distance: -(leader's steps to the destination ignoring obstacles); "
                         "planner: -(the planner's shortest remaining path), for both agents")
     p.add_argument("--planner-slack", type=int, default=6)
+    p.add_argument("--random-starts", type=float, default=0.0,
+                   help="probability that a training episode starts with the formation shifted up a random number "
+                        "of rows (exploring starts); evaluation always uses the spec's starts")
+    p.add_argument("--team-reach", action="store_true",
+                   help="followers' training reward also gets the leader's reach bonus (a team goal)")
     p.add_argument("--demo", type=float, default=0.0, help="fraction of games played by the planner")
     p.add_argument("--margin", type=float, default=0.0, help="DQfD large-margin loss weight on planner steps")
     p.add_argument("--steps", type=int, default=300_000)
@@ -178,7 +183,24 @@ def main() -> None:
     config = GameConfig.from_setting(args.setting or None, obs_type=args.obs, frame_stack=args.stack, **overrides)
     B = args.envs
     game = BatchedGame(config, batch_size=B, seed=args.seed)
+
+    def shift_starts(mask: np.ndarray) -> None:
+        """Exploring starts: move the formation of some freshly reset games up by a random number
+        of rows, unless that puts an agent on an obstacle or the leader on the destination row."""
+        for i in np.flatnonzero(mask):
+            if rng.random() >= args.random_starts:
+                continue
+            rows = int(rng.integers(1, game.positions[i, :, 0].min() + 1))
+            moved = game.positions[i].copy()
+            moved[:, 0] -= rows
+            obstacles = set(zip(game.obstacle_rows[i].tolist(), game.obstacle_cols[i].tolist()))
+            if moved[0, 0] <= 0 or any((r, c) in obstacles for r, c in moved.tolist()):
+                continue
+            game.positions[i] = moved
+
     game.reset()
+    if args.random_starts:
+        shift_starts(np.ones(B, bool))
     observer = Observer(game)
     obs = observer.observe(np.ones(B, bool)).copy()
     A = game.n_agents
@@ -247,6 +269,8 @@ def main() -> None:
                 actions[i] = plans[i].pop(0)
         game.step(actions)
         rewards = game.rewards.copy()
+        if args.team_reach:
+            rewards[:, 1:] += (config.reward_reach * game.reached)[:, None]
         phi_next = potential()
         shaped = args.shaping * (args.gamma * phi_next - phi)
         if args.potential == "distance":
@@ -259,6 +283,8 @@ def main() -> None:
         episode_success += (done & game.success).sum()
         if done.any():
             game.reset(mask=done)
+            if args.random_starts:
+                shift_starts(done)
             for i in np.flatnonzero(done[:n_demo]):
                 plan(int(i))
         phi = potential() if done.any() else phi_next
