@@ -124,3 +124,16 @@ def test_prioritized_sampling_follows_priorities():
     draws = tree.find(np.random.default_rng(0).random(4000) * tree.total)
     assert set(draws.tolist()) == {1, 3}
     assert 0.7 < (draws == 3).mean() < 0.8
+
+
+def test_a_stale_link_never_touches_the_record_that_reused_its_slot():
+    replay = FrameReplay(4, (2, 2, 1), n_agents=2, frame_stack=1)
+    replay.add(hand_chunk([[1, 1]], [0], [0], stream=7, first_flags=[1]))  # id 0, slot 0, stream 7
+    # stream 8 fills the ring and wraps: id 4 reuses slot 0
+    replay.add(hand_chunk([[1, 1]] * 4, [0] * 4, [0] * 4, stream=8, first_flags=[1, 0, 0, 0]))
+    assert replay.ids[0] == 4 and replay.next[0] == -1
+    replay.add(hand_chunk([[1, 1]], [0], [0], stream=8))  # id 5: links 4 -> 5 in slot 0
+    assert replay.next[0] == 5
+    # stream 7 goes on: its last record (id 0) is gone, and slot 0 must keep 4 -> 5
+    replay.add(hand_chunk([[1, 1]], [0], [0], stream=7))
+    assert replay.next[0] == 5

@@ -102,8 +102,8 @@ class FrameReplay:
         for i, (s, f) in enumerate(zip(streams, first)):
             p = int(ids[i]) if f else last.get(s, int(ids[i]))
             prev[i] = p
-            if p != ids[i]:
-                self.next[p % self.capacity] = ids[i] if self.ids[p % self.capacity] == p else NONE
+            if p != ids[i] and self.ids[p % self.capacity] == p:  # never touch a slot reused since
+                self.next[p % self.capacity] = ids[i]
             last[s] = int(ids[i])
         self.prev[slots] = prev
         if self._priority is not None:
