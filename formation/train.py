@@ -52,6 +52,23 @@ def start_ray(run: RunConfig) -> None:
         ray.init(num_cpus=os.cpu_count() or 2, include_dashboard=False, log_to_driver=False)
 
 
+def check_resources(run: RunConfig) -> None:
+    """Fail fast, in one line, when the run asks for more than the Ray cluster has (Ray would wait)."""
+    import ray
+
+    have = ray.cluster_resources()
+    res = run.resources
+    gpus = res.num_gpus_per_learner
+    cpus = res.num_rollout_actors * res.cpus_per_rollout_actor + (1 if gpus == 0 else 0)
+    if gpus > have.get("GPU", 0):
+        raise ConfigError(f"resources.num_gpus_per_learner: {gpus:g} GPU asked, the Ray cluster has "
+                          f"{have.get('GPU', 0):g}; allowed here: 0 (the learner then runs on CPU)")
+    if cpus > have.get("CPU", 0):
+        raise ConfigError(f"resources.num_rollout_actors: {res.num_rollout_actors} actors x "
+                          f"{res.cpus_per_rollout_actor:g} CPU + the learner need {cpus:g} CPUs, the Ray cluster has "
+                          f"{have.get('CPU', 0):g}; lower num_rollout_actors or cpus_per_rollout_actor")
+
+
 def checkpoint_path(out: Path) -> Path:
     return out / CHECKPOINT
 
@@ -116,6 +133,7 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
     (out_dir / "config.yaml").write_text(yaml.safe_dump(run.to_dict(), sort_keys=False))
 
     start_ray(run)
+    check_resources(run)
     from ray.rllib.algorithms.algorithm import Algorithm
 
     from formation.learn.algorithm import build_algorithm_config

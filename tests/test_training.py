@@ -83,3 +83,13 @@ def test_resume_without_checkpoint_and_bad_config_are_one_line_errors(tmp_path):
         train(None, str(tmp_path / "none"), resume=True)
     with pytest.raises(ConfigError, match=r"^train\.gama: unknown key"):
         train(SMOKE, str(tmp_path / "bad"), overrides={"train.gama": 0.5})
+
+
+def test_asking_for_more_than_the_cluster_has_fails_fast(cluster, tmp_path):
+    from formation.train import train
+
+    with pytest.raises(ConfigError, match=r"^resources\.num_gpus_per_learner: 1 GPU asked"):
+        train(SMOKE, str(tmp_path / "gpu"), overrides={"resources.num_gpus_per_learner": 1})
+    with pytest.raises(ConfigError, match=r"^resources\.num_rollout_actors: 8 actors"):
+        train(SMOKE, str(tmp_path / "cpu"), overrides={"resources.num_rollout_actors": 8,
+                                                       "resources.cpus_per_rollout_actor": 1.0})
