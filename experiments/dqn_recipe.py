@@ -43,6 +43,9 @@ def parse_args() -> argparse.Namespace:
     p.add_argument("--random-starts", type=float, default=0.0,
                    help="probability that a training episode starts with the formation shifted up a random number "
                         "of rows (exploring starts); evaluation always uses the spec's starts")
+    p.add_argument("--dagger", action="store_true",
+                   help="label every visited state with the planner's joint action (DAgger); the margin loss "
+                        "(--margin) then pulls each agent's greedy action towards its label")
     p.add_argument("--team-reach", action="store_true",
                    help="followers' training reward also gets the leader's reach bonus (a team goal)")
     p.add_argument("--demo", type=float, default=0.0, help="fraction of games played by the planner")
@@ -102,20 +105,22 @@ class Replay:
         self.returns = np.zeros((capacity, n_agents), np.float32)
         self.discounts = np.zeros(capacity, np.float32)  # gamma^n, or 0 after termination
         self.expert = np.zeros(capacity, bool)
+        self.labels = np.full((capacity, n_agents), -1, np.int64)  # planner's action, -1 if none
         self.capacity, self.size, self.head = capacity, 0, 0
 
-    def add(self, obs, actions, returns, discounts, next_obs, expert):
+    def add(self, obs, actions, returns, discounts, next_obs, expert, labels):
         n = len(obs)
         idx = (self.head + np.arange(n)) % self.capacity
         self.obs[idx], self.next_obs[idx], self.actions[idx] = obs, next_obs, actions
         self.returns[idx], self.discounts[idx], self.expert[idx] = returns, discounts, expert
+        self.labels[idx] = labels
         self.head = (self.head + n) % self.capacity
         self.size = min(self.size + n, self.capacity)
 
     def sample(self, batch: int, rng):
         idx = rng.integers(0, self.size, batch)
         return (self.obs[idx], self.actions[idx], self.returns[idx], self.discounts[idx],
-                self.next_obs[idx], self.expert[idx])
+                self.next_obs[idx], self.expert[idx], self.labels[idx])
 
 
 class NStep:
@@ -125,9 +130,9 @@ class NStep:
         self.n, self.gamma = n, gamma
         self.queues: dict[int, list] = {}
 
-    def push(self, game: int, obs, actions, rewards, next_obs, terminated: bool, truncated: bool, expert):
+    def push(self, game: int, obs, actions, rewards, next_obs, terminated: bool, truncated: bool, expert, labels):
         q = self.queues.setdefault(game, [])
-        q.append((obs, actions, rewards, expert))
+        q.append((obs, actions, rewards, (expert, labels)))
         out = []
         if len(q) == self.n or terminated or truncated:
             while q:
@@ -135,8 +140,8 @@ class NStep:
                 for k, (_, _, r, _) in enumerate(q):
                     ret = ret + (self.gamma ** k) * r
                 disc = 0.0 if terminated else self.gamma ** len(q)
-                o, a, _, e = q[0]
-                out.append((o, a, ret, disc, next_obs, e))
+                o, a, _, (e, lab) = q[0]
+                out.append((o, a, ret, disc, next_obs, e, lab))
                 q.pop(0)
                 if not (terminated or truncated):
                     break
@@ -267,6 +272,19 @@ def main() -> None:
         for i in range(n_demo):
             if plans[i]:
                 actions[i] = plans[i].pop(0)
+        labels = np.full((B, A), -1, np.int64)
+        if args.dagger:
+            from formation.planner import lower_bound, shortest_path
+
+            for i in range(B):
+                scenario = game.scenario(i)
+                limit = lower_bound(scenario, config) + args.planner_slack
+                if limit not in capped:
+                    capped[limit] = config.replace(max_steps=limit)
+                path = shortest_path(scenario, config=capped[limit])
+                if path:
+                    labels[i] = path[0]
+        labels[:n_demo] = actions[:n_demo]
         game.step(actions)
         rewards = game.rewards.copy()
         if args.team_reach:
@@ -296,15 +314,15 @@ def main() -> None:
         batch = []
         for i in range(B):
             batch += nstep.push(i, obs[i], actions[i], rewards[i], next_obs[i], bool(term[i]), bool(trunc[i]),
-                                i < n_demo)
+                                i < n_demo, labels[i])
         if batch:
-            o_, a_, r_, d_, n_, e_ = map(np.array, zip(*batch))
-            replay.add(o_, a_, r_, d_, n_, e_)
+            o_, a_, r_, d_, n_, e_, l_ = map(np.array, zip(*batch))
+            replay.add(o_, a_, r_, d_, n_, e_, l_)
         obs = next_obs
         env_steps += B
         # learner: keep updates / env steps at the replay ratio
         while replay.size >= args.learning_starts and updates < env_steps * args.replay_ratio:
-            o_, a_, r_, d_, n_, e_ = replay.sample(args.batch, rng)
+            o_, a_, r_, d_, n_, e_, l_ = replay.sample(args.batch, rng)
             o_t, n_t = torch.from_numpy(o_), torch.from_numpy(n_)
             d_t = torch.from_numpy(d_)
             for k in range(A):
@@ -315,10 +333,13 @@ def main() -> None:
                     best = nets[k](n_t).argmax(1, keepdim=True)
                     y = torch.from_numpy(r_[:, k]) + d_t * targets[k](n_t).gather(1, best).squeeze(1)
                 loss = nn.functional.smooth_l1_loss(q_a, y)
-                if args.margin and e_.any():
-                    m = torch.from_numpy(e_)
-                    margins = torch.full_like(q, 0.8).scatter(1, torch.from_numpy(a_[:, k:k + 1]), 0.0)
-                    large_margin = (q + margins).max(1).values - q_a
+                labelled = l_[:, k] >= 0
+                if args.margin and labelled.any():
+                    # DQfD: J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), a_E the planner's action
+                    m = torch.from_numpy(labelled)
+                    label = torch.from_numpy(np.maximum(l_[:, k:k + 1], 0))
+                    margins = torch.full_like(q, 0.8).scatter(1, label, 0.0)
+                    large_margin = (q + margins).max(1).values - q.gather(1, label).squeeze(1)
                     loss = loss + args.margin * large_margin[m].mean()
                 optims[k].zero_grad()
                 loss.backward()
