@@ -46,6 +46,8 @@ def start_ray(run: RunConfig) -> None:
 
     if ray.is_initialized():
         return
+    # Ray's C++ failure-signal handler would end the driver on SIGTERM before ours saves a checkpoint.
+    os.environ.setdefault("RAY_DISABLE_FAILURE_SIGNAL_HANDLER", "1")
     if os.environ.get("RAY_ADDRESS"):  # inside `ray job submit`: join the cluster
         ray.init()
     else:  # a laptop: a local Ray sized to the machine, no dashboard
@@ -132,23 +134,20 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "config.yaml").write_text(yaml.safe_dump(run.to_dict(), sort_keys=False))
 
-    start_ray(run)
-    check_resources(run)
-    from ray.rllib.algorithms.algorithm import Algorithm
-
-    from formation.learn.algorithm import build_algorithm_config
-
-    if resume:
-        algo = Algorithm.from_checkpoint(str(checkpoint_path(out_dir).resolve()))
-    else:
-        algo = build_algorithm_config(run).build_algo()
+    previous_handler = signal.signal(signal.SIGTERM, _raise_stop)
+    try:
+        algo = _start(run, out_dir, resume)
+    except BaseException as err:
+        signal.signal(signal.SIGTERM, previous_handler)
+        if isinstance(err, KeyboardInterrupt | Stop):
+            print("\nstopped before training began; nothing to save", file=sys.stderr)
+        raise
 
     from tensorboardX import SummaryWriter
 
     writer = SummaryWriter(str(out_dir / "tb"))
     metrics_file = (out_dir / "metrics.jsonl").open("a")
     progress = Progress(run.train.total_env_steps)
-    previous_handler = signal.signal(signal.SIGTERM, _raise_stop)
     iteration = 0
     started, at_start = time.perf_counter(), dict(algo.counters)
     try:
@@ -183,6 +182,19 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         print(f"greedy success {summary['success']:.1%} on {summary['episodes']} held-out scenarios; "
               f"run folder {out_dir}")
     return summary
+
+
+def _start(run: RunConfig, out_dir: Path, resume: bool):
+    """Start (or join) Ray and build the algorithm, fresh or from the run's checkpoint."""
+    start_ray(run)
+    check_resources(run)
+    from ray.rllib.algorithms.algorithm import Algorithm
+
+    from formation.learn.algorithm import build_algorithm_config
+
+    if resume:
+        return Algorithm.from_checkpoint(str(checkpoint_path(out_dir).resolve()))
+    return build_algorithm_config(run).build_algo()
 
 
 def _raise_stop(signum, frame):

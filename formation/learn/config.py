@@ -24,6 +24,7 @@ from formation.config import ConfigError, GameConfig
 from formation.learn.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
+EXPLORATIONS = ("independent", "joint")
 
 
 @dataclass(frozen=True)
@@ -41,12 +42,16 @@ class TrainSettings:
     epsilon_start: float = 1.0
     epsilon_end: float = 0.05
     epsilon_env_steps: int = 100_000
+    # independent: each agent explores on its own; joint: with probability epsilon the whole team
+    # explores together, every follower copying the leader's random move (keeps the formation)
+    exploration: str = "independent"
     shaping: float = 1.0  # weight of potential-based shaping; 0 = the paper's reward alone
     potential: str = "distance"  # none | distance | planner (see formation.learn.shaping)
     planner_slack: int = 6  # planner potential: paths longer than the lower bound + slack count as lost
     steps_per_sample: int = 8  # steps of all of an actor's games per push to the replay
     demonstrations: float = 0.0  # fraction of games played by the clairvoyant planner
-    margin: float = 0.0  # DQfD large-margin loss weight on the planner's steps
+    margin: float = 0.0  # DQfD large-margin loss weight towards the planner's actions (labels)
+    dagger: bool = False  # label every visited state with the planner's joint action (DAgger)
     prioritized: bool = False
     followers_share_policy: bool = True
     hidden: int = 128
@@ -75,12 +80,18 @@ class TrainSettings:
             _integer(self, name, 1)
         _integer(self, "learning_starts", 0)
         _integer(self, "seed", 0)
+        for name in ("prioritized", "followers_share_policy", "dagger"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
+        if self.exploration not in EXPLORATIONS:
+            raise ConfigError(f"train.exploration: {self.exploration!r} is not allowed; "
+                              f"allowed: {', '.join(EXPLORATIONS)}")
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
         if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0
-                                     or self.prioritized):
+                                     or self.prioritized or self.dagger):
             raise ConfigError("train.path: stock runs RLlib's DQN on the paper's reward alone; "
-                              "set train.shaping: 0, demonstrations: 0, margin: 0, prioritized: false")
+                              "set train.shaping: 0, demonstrations: 0, margin: 0, prioritized: false, dagger: false")
         if len(self.channels) != 3 or not all(isinstance(c, int) and c >= 1 for c in self.channels):
             raise ConfigError(f"train.channels: {list(self.channels)!r} is not allowed; allowed: three integers >= 1")
 

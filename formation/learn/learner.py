@@ -20,8 +20,8 @@ from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from formation.learn.qnet import double_q_target
 
-RETURNS, DISCOUNTS, EXPERT, WEIGHTS = "n_step_returns", "n_step_discounts", "expert", "weights"
-MARGIN = 0.8  # DQfD's margin between the demonstrator's action and any other
+RETURNS, DISCOUNTS, LABELS, WEIGHTS = "n_step_returns", "n_step_discounts", "teacher_labels", "weights"
+MARGIN = 0.8  # DQfD's margin between the teacher's action and any other
 
 
 def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str]) -> dict[str, dict[str, np.ndarray]]:
@@ -38,7 +38,7 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str]) ->
                        Columns.ACTIONS: np.concatenate([sample["actions"][:, a] for a in agents]),
                        RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
                        DISCOUNTS: np.concatenate([sample["discounts"]] * copies),
-                       EXPERT: np.concatenate([sample["expert"]] * copies),
+                       LABELS: np.concatenate([sample["labels"][:, a] for a in agents]),
                        WEIGHTS: np.concatenate([sample["weights"]] * copies)}
     return out
 
@@ -65,12 +65,14 @@ class FormationLearner(DQNTorchLearner):
         td = q_taken - y
         loss = (batch[WEIGHTS] * torch.nn.functional.smooth_l1_loss(q_taken, y, reduction="none")).mean()
         if config.margin > 0:
-            expert = batch[EXPERT].bool()
-            if expert.any():
-                # DQfD: J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E) on the demonstrator's steps
-                margins = torch.full_like(q, MARGIN).scatter(1, actions, 0.0)
-                large_margin = (q + margins).max(1).values - q_taken
-                loss = loss + config.margin * large_margin[expert].mean()
+            labels = batch[LABELS].long()
+            taught = labels >= 0
+            if taught.any():
+                # DQfD: J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), a_E the teacher's (planner's) action
+                a_e = labels.clamp(min=0).unsqueeze(1)
+                margins = torch.full_like(q, MARGIN).scatter(1, a_e, 0.0)
+                large_margin = (q + margins).max(1).values - q.gather(1, a_e).squeeze(1)
+                loss = loss + config.margin * large_margin[taught].mean()
         self._td[module_id] = td.detach().abs().cpu().numpy()
         self.metrics.log_value((module_id, "q_mean"), q_taken.detach().mean(), window=1)
         self.metrics.log_value((module_id, "td_abs_mean"), td.detach().abs().mean(), window=1)

@@ -31,7 +31,8 @@ class Chunk:
     bool: the record starts an episode; ``terminal`` (N,) bool: a terminal record (the frame
     after the last step, no action); ``actions`` (N, A) int; ``rewards`` (N, A) float;
     ``terminated`` / ``truncated`` (N,) bool: this record's step ended the episode that way.
-    ``expert`` (N,) bool, optional: the step was taken by a demonstrator (the planner).
+    ``labels`` (N, A) int, optional: a teacher's action for each agent in this state (the
+    planner's, for demonstrations and DAgger), -1 where there is none.
     """
 
     streams: np.ndarray
@@ -42,7 +43,7 @@ class Chunk:
     rewards: np.ndarray
     terminated: np.ndarray
     truncated: np.ndarray
-    expert: np.ndarray | None = None
+    labels: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.streams)
@@ -67,7 +68,7 @@ class FrameReplay:
         self.terminated = np.zeros(capacity, bool)
         self.truncated = np.zeros(capacity, bool)
         self.terminal = np.zeros(capacity, bool)
-        self.expert = np.zeros(capacity, bool)
+        self.labels = np.full((capacity, n_agents), -1, np.int8)
         self.added = 0  # records ever added; the next record's id
         self._stream_last: dict[int, int] = {}
         self.prioritized = prioritized
@@ -92,7 +93,7 @@ class FrameReplay:
         self.terminated[slots] = chunk.terminated
         self.truncated[slots] = chunk.truncated
         self.terminal[slots] = chunk.terminal
-        self.expert[slots] = chunk.expert if chunk.expert is not None else False
+        self.labels[slots] = chunk.labels if chunk.labels is not None else -1
         self.next[slots] = NONE
         # Link each record to the previous record of its stream (itself at an episode start).
         prev = np.empty(n, np.int64)
@@ -121,7 +122,7 @@ class FrameReplay:
     @property
     def nbytes(self) -> int:
         return sum(a.nbytes for a in (self.frames, self.ids, self.prev, self.next, self.actions, self.rewards,
-                                      self.terminated, self.truncated, self.terminal, self.expert))
+                                      self.terminated, self.truncated, self.terminal, self.labels))
 
     # ------------------------------------------------------------------ reading
     def _valid(self, ids: np.ndarray) -> np.ndarray:
@@ -170,7 +171,7 @@ class FrameReplay:
 
     def sample(self, batch_size: int, n_step: int = 1, gamma: float = 0.99, beta: float = 0.4) -> dict:
         """A batch of transitions for all agents: obs and next_obs stacks, actions, n-step returns,
-        discounts (0 after termination), expert flags, and ids / importance weights for priorities."""
+        discounts (0 after termination), teacher labels, and ids / importance weights for priorities."""
         if self.size == 0:
             raise ValueError("replay: sample() on an empty replay")
         picked_ids = []
@@ -192,7 +193,7 @@ class FrameReplay:
         next_obs, _ = self.stack(next_ids)
         slots = ids % self.capacity
         batch = {"obs": obs, "next_obs": next_obs, "actions": self.actions[slots].astype(np.int64),
-                 "returns": returns, "discounts": discounts, "expert": self.expert[slots].copy(), "ids": ids}
+                 "returns": returns, "discounts": discounts, "labels": self.labels[slots].astype(np.int64), "ids": ids}
         if self._priority is not None:
             p = self._priority.get(slots) / self._priority.total
             weights = (self.size * p) ** (-beta)

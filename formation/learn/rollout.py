@@ -42,8 +42,9 @@ class GameRollout:
     def frame_shape(self) -> tuple[int, int, int]:
         return tuple(self.observer.frame_shape)
 
-    def step(self, actions: np.ndarray, expert: np.ndarray | None = None) -> Chunk:
-        """Play one joint action per game; return the records of this step."""
+    def step(self, actions: np.ndarray, labels: np.ndarray | None = None) -> Chunk:
+        """Play one joint action per game; return the records of this step. ``labels`` (B, 1+k):
+        a teacher's action for each agent in the state before the step, -1 where there is none."""
         g = self.game
         frames_before, first = self._frames, self._first
         g.step(actions)
@@ -56,7 +57,7 @@ class GameRollout:
         records = Chunk(streams=self.streams, frames=frames_before, first=first,
                         terminal=np.zeros(self.batch_size, bool), actions=np.asarray(actions, np.int8),
                         rewards=rewards, terminated=g.terminated.copy(), truncated=g.truncated.copy(),
-                        expert=np.zeros(self.batch_size, bool) if expert is None else expert.copy())
+                        labels=np.full(actions.shape, -1, np.int8) if labels is None else labels.astype(np.int8))
         self._returns += g.rewards
         if done.any():
             ended = np.flatnonzero(done)
@@ -71,7 +72,7 @@ class GameRollout:
             terminal = Chunk(streams=self.streams[ended], frames=terminal_frames, first=np.zeros(n, bool),
                              terminal=np.ones(n, bool), actions=np.zeros((n, self.n_agents), np.int8),
                              rewards=np.zeros((n, self.n_agents), np.float32), terminated=np.zeros(n, bool),
-                             truncated=np.zeros(n, bool), expert=np.zeros(n, bool))
+                             truncated=np.zeros(n, bool), labels=np.full((n, self.n_agents), -1, np.int8))
             records = concatenate([records, terminal])
             g.reset(mask=done)
             if self.potential is not None:
@@ -87,5 +88,5 @@ class GameRollout:
 
 
 def concatenate(chunks: list[Chunk]) -> Chunk:
-    fields = ("streams", "frames", "first", "terminal", "actions", "rewards", "terminated", "truncated", "expert")
+    fields = ("streams", "frames", "first", "terminal", "actions", "rewards", "terminated", "truncated", "labels")
     return Chunk(**{f: np.concatenate([getattr(c, f) for c in chunks]) for f in fields})

@@ -1,8 +1,8 @@
 """Rollout actors: RLlib EnvRunners that play a batch of games and push records to the replay.
 
 Each ``sample()`` plays ``steps_per_sample`` steps of all its games with the weights it was last
-sent (epsilon-greedy per agent), pushes the records straight to its replay shard and returns
-only counts and finished-episode statistics, never transitions.
+sent (epsilon-greedy, per agent or per team: ``train.exploration``), pushes the records straight to
+its replay shard and returns only counts and finished-episode statistics, never transitions.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from ray.rllib.env.env_runner import EnvRunner
 from ray.rllib.utils.checkpoints import Checkpointable
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_NO
 
-from formation.learn.config import RunConfig
+from formation.learn.config import RunConfig, TrainSettings
 from formation.learn.rollout import GameRollout, concatenate
 from formation.learn.shaping import Potential
 
@@ -38,6 +38,29 @@ def module_of_agent(run: RunConfig) -> list[str]:
     if run.train.followers_share_policy:
         return ["leader"] + ["follower"] * run.game.n_followers
     return names
+
+
+def epsilon_at(env_steps: int, train: TrainSettings) -> float:
+    """Exploration rate after ``env_steps``: linear from epsilon_start to epsilon_end over epsilon_env_steps."""
+    done = min(1.0, env_steps / train.epsilon_env_steps)
+    return train.epsilon_start + done * (train.epsilon_end - train.epsilon_start)
+
+
+def epsilon_greedy(greedy: np.ndarray, epsilon: float, rng: np.random.Generator, joint: bool,
+                   n_actions: int = 4) -> np.ndarray:
+    """Epsilon-greedy actions from the greedy ones, both (games, agents), leader first.
+
+    Independent: every agent explores on its own with probability ``epsilon``. Joint: a game's team
+    explores with probability ``epsilon`` and then every agent takes the leader's random move, so
+    exploring does not break the formation at once."""
+    games, agents = greedy.shape
+    if joint:
+        explore = np.repeat(rng.random((games, 1)) < epsilon, agents, axis=1)
+        random = np.repeat(rng.integers(0, n_actions, (games, 1)), agents, axis=1)
+    else:
+        explore = rng.random((games, agents)) < epsilon
+        random = rng.integers(0, n_actions, (games, agents))
+    return np.where(explore, random, greedy).astype(greedy.dtype)
 
 
 class RolloutActor(EnvRunner, Checkpointable):
@@ -62,8 +85,10 @@ class RolloutActor(EnvRunner, Checkpointable):
             else None
         self.rollout = GameRollout(run.game, games, seed=t.seed * 10_007 + index, stream_offset=index * games,
                                    potential=potential, shaping=t.shaping, gamma=t.gamma)
+        self._rng = np.random.default_rng([t.seed, index])  # exploration
         self._demo_games = int(round(run.train.demonstrations * games))
         self._plans: dict[int, list] = {}
+        self._capped: dict = {}  # game configs with max_steps capped, for the planner's labels
         for i in range(self._demo_games):
             self._plan(i)
 
@@ -91,35 +116,42 @@ class RolloutActor(EnvRunner, Checkpointable):
         path = shortest_path(self.rollout.game.scenario(game), config=self.run.game)
         self._plans[game] = list(path or [])
 
+    def _planner_labels(self) -> np.ndarray:
+        """DAgger: the planner's joint action in every game's present state (-1 where no path
+        within the lower bound + planner_slack steps exists)."""
+        from formation.planner import lower_bound, shortest_path
+
+        game, labels = self.rollout.game, np.full((self.rollout.batch_size, self.rollout.n_agents), -1, np.int8)
+        for i in range(self.rollout.batch_size):
+            scenario = game.scenario(i)
+            limit = lower_bound(scenario, self.run.game) + self.run.train.planner_slack
+            if limit not in self._capped:
+                self._capped[limit] = self.run.game.replace(max_steps=limit)
+            path = shortest_path(scenario, config=self._capped[limit])
+            if path:
+                labels[i] = path[0]
+        return labels
+
     def _actions(self, observations: np.ndarray) -> np.ndarray:
         obs = torch.from_numpy(observations)
-        by_module = {}
         with torch.no_grad():
-            for m in set(self._modules_of_agent):
-                out = self.module[m].forward_exploration({Columns.OBS: obs}, t=self.num_env_steps_sampled_lifetime)
-                by_module[m] = out[Columns.ACTIONS].numpy()
-        actions = np.stack([by_module[m] for m in self._modules_of_agent], axis=1)
-        if len({*self._modules_of_agent}) < len(self._modules_of_agent):
-            # followers sharing one policy still explore independently
-            shared = [i for i, m in enumerate(self._modules_of_agent) if self._modules_of_agent.count(m) > 1]
-            for i in shared[1:]:
-                redo = self.module[self._modules_of_agent[i]].forward_exploration(
-                    {Columns.OBS: obs}, t=self.num_env_steps_sampled_lifetime)
-                actions[:, i] = redo[Columns.ACTIONS].numpy()
-        return actions
+            greedy = {m: self.module[m].forward_inference({Columns.OBS: obs})[Columns.ACTIONS].numpy()
+                      for m in set(self._modules_of_agent)}
+        actions = np.stack([greedy[m] for m in self._modules_of_agent], axis=1)
+        t = self.run.train
+        return epsilon_greedy(actions, epsilon_at(self.num_env_steps_sampled_lifetime, t), self._rng,
+                              joint=t.exploration == "joint")
 
     def sample(self, **kwargs) -> dict[str, Any]:
         run, rollout = self.run, self.rollout
         chunks = []
-        expert = np.zeros(rollout.batch_size, bool)
-        expert[: self._demo_games] = True
         for _ in range(run.train.steps_per_sample):
             actions = self._actions(rollout.observations)
-            for i in range(self._demo_games):
+            labels = self._planner_labels() if run.train.dagger else np.full(actions.shape, -1, np.int8)
+            for i in range(self._demo_games):  # demonstration games follow the planner's path
                 if self._plans[i]:
-                    actions[i] = self._plans[i].pop(0)
-            chunk = rollout.step(actions, expert=expert)
-            chunks.append(chunk)
+                    actions[i] = labels[i] = self._plans[i].pop(0)
+            chunks.append(rollout.step(actions, labels=labels))
             for i in np.flatnonzero(rollout.game.steps[: self._demo_games] == 0):
                 self._plan(int(i))
         records = concatenate(chunks)
