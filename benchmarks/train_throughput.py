@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import time
+from collections import deque
 
 import numpy as np
 
@@ -76,11 +77,13 @@ def array_bytes(obj, seen=None) -> int:
         return obj.nbytes
     if isinstance(obj, dict):
         return sum(array_bytes(v, seen) for v in obj.values())
-    if isinstance(obj, list | tuple):
+    if isinstance(obj, list | tuple | deque | set):
         return sum(array_bytes(v, seen) for v in obj)
-    if hasattr(obj, "__dict__"):
-        return array_bytes(vars(obj), seen)
-    return 0
+    total = array_bytes(vars(obj), seen) if hasattr(obj, "__dict__") else 0
+    for cls in type(obj).__mro__:  # RLlib's episodes keep their data in __slots__
+        for name in getattr(cls, "__slots__", ()):
+            total += array_bytes(getattr(obj, name, None), seen)
+    return total
 
 
 def main() -> None:

@@ -61,9 +61,9 @@ def test_each_screen_is_stored_once():
     config = GameConfig.from_setting(1, obs_type="pixels", frame_stack=4)
     replay, seen, rollout = play(config, batch=3, steps=50, capacity=100_000)
     steps = 3 * 50
-    episodes_ended = int(replay.terminal[: replay.size].sum())
-    # one frame per agent step plus one per finished episode; never one per agent or per stack slot
-    assert replay.added == steps + episodes_ended
+    truncated = int(replay.truncated[: replay.size].sum())
+    # one frame per agent step plus one per truncated episode; never one per agent or per stack slot
+    assert replay.added == steps + truncated
     assert replay.frames.shape[1:] == (84, 84, 3)
     per_record = replay.nbytes / replay.capacity
     assert 84 * 84 * 3 <= per_record < 84 * 84 * 3 + 100
@@ -137,3 +137,13 @@ def test_a_stale_link_never_touches_the_record_that_reused_its_slot():
     # stream 7 goes on: its last record (id 0) is gone, and slot 0 must keep 4 -> 5
     replay.add(hand_chunk([[1, 1]], [0], [0], stream=7))
     assert replay.next[0] == 5
+
+
+def test_a_terminated_step_needs_no_terminal_record():
+    replay = FrameReplay(100, (2, 2, 1), n_agents=2, frame_stack=1)
+    replay.add(hand_chunk([[1, 1], [2, 2]], [0, 1], [0, 0], first_flags=[1, 0]))  # no terminal record
+    returns, discounts, _, ok = replay.n_step(np.arange(2), n=3, gamma=0.5)
+    assert ok.tolist() == [True, True]
+    np.testing.assert_allclose(returns, [[2, 2], [2, 2]])
+    np.testing.assert_allclose(discounts, [0, 0])
+    assert len(replay.sample(8, n_step=3, gamma=0.5)["ids"]) == 8

@@ -2,9 +2,10 @@
 
 Rollouts push *records*, one per game per step, in each game's own order. A record holds the
 frame the agents saw before acting, every agent's action and reward, and whether the step ended
-the episode. The frame after the last step of an episode is pushed as a *terminal record*
-(no action; never sampled as a start). So an episode of L steps costs L + 1 frames, and the
-k-frame stacks of consecutive steps share their frames instead of copying them.
+the episode. When an episode is truncated, the frame after its last step is pushed as a
+*terminal record* (no action; never sampled as a start) to bootstrap from; a terminated episode
+needs none. So an episode of L steps costs L or L + 1 frames, and the k-frame stacks of
+consecutive steps share their frames instead of copying them.
 
 Each record gets a global id (insertion count); slot = id % capacity. A record keeps the ids of
 its predecessor and successor in the same episode; when the ring overwrites a record its slot's
@@ -160,8 +161,11 @@ class FrameReplay:
             slot = cur % self.capacity
             returns += (discount[:, None] * self.rewards[slot]) * running[:, None]
             nxt = self.next[slot]
+            # a terminated step never bootstraps: it needs no successor (its next stack is unused)
+            ended = self.terminated[slot]
+            nxt = np.where(ended & ~self._valid(nxt), cur, nxt)
             ok &= ~running | self._valid(nxt)
-            term = running & self.terminated[slot]
+            term = running & ended
             discount = np.where(running, discount * gamma, discount)
             discount[term] = 0.0
             cur = np.where(running, nxt, cur)

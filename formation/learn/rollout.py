@@ -2,7 +2,7 @@
 
 ``GameRollout`` owns a ``BatchedGame``, keeps each game's frame stack for acting, and after
 every step returns the records of that step (see ``formation.learn.replay``): one per game, plus
-a terminal record for each game whose episode just ended. Finished games restart at once.
+a terminal record for each game whose episode was just truncated. Finished games restart at once.
 No Ray, no torch: the rollout actors (EnvRunners) and the tests use it alike.
 """
 
@@ -61,19 +61,22 @@ class GameRollout:
         self._returns += g.rewards
         if done.any():
             ended = np.flatnonzero(done)
-            terminal_frames = self.observer.renderer.render()[ended].copy()
             for i in ended.tolist():
                 self._episodes.append({
                     "returns": self._returns[i].tolist(), "steps": int(g.steps[i]), "success": bool(g.success[i]),
                     "collided": bool(g.collided[i].any()), "broken": bool(not g.formation_kept[i]),
                     "reached": bool(g.reached[i]), "truncated": bool(g.truncated[i])})
             self._returns[ended] = 0
-            n = len(ended)
-            terminal = Chunk(streams=self.streams[ended], frames=terminal_frames, first=np.zeros(n, bool),
-                             terminal=np.ones(n, bool), actions=np.zeros((n, self.n_agents), np.int8),
-                             rewards=np.zeros((n, self.n_agents), np.float32), terminated=np.zeros(n, bool),
-                             truncated=np.zeros(n, bool), labels=np.full((n, self.n_agents), -1, np.int8))
-            records = concatenate([records, terminal])
+            # Only a truncated episode bootstraps from the state after its last step.
+            cut = np.flatnonzero(g.truncated)
+            if len(cut):
+                n = len(cut)
+                terminal = Chunk(streams=self.streams[cut], frames=self.observer.renderer.render()[cut].copy(),
+                                 first=np.zeros(n, bool), terminal=np.ones(n, bool),
+                                 actions=np.zeros((n, self.n_agents), np.int8),
+                                 rewards=np.zeros((n, self.n_agents), np.float32), terminated=np.zeros(n, bool),
+                                 truncated=np.zeros(n, bool), labels=np.full((n, self.n_agents), -1, np.int8))
+                records = concatenate([records, terminal])
             g.reset(mask=done)
             if self.potential is not None:
                 self._phi[done] = self.potential(g, done)[done]
