@@ -26,8 +26,8 @@ CHECKPOINT = "checkpoint"
 RESUMABLE = {"train.total_env_steps"}  # what --set may change when resuming
 
 
-class Stop(Exception):
-    """Raised by the SIGTERM handler so that training stops like on Ctrl-C."""
+class Stop(KeyboardInterrupt):
+    """Raised by the SIGTERM handler so that training stops like on Ctrl-C (and the CLI exits 130)."""
 
 
 def flatten(d: dict, prefix: str = "") -> dict[str, Any]:
@@ -46,8 +46,6 @@ def start_ray(run: RunConfig) -> None:
 
     if ray.is_initialized():
         return
-    # Ray's C++ failure-signal handler would end the driver on SIGTERM before ours saves a checkpoint.
-    os.environ.setdefault("RAY_DISABLE_FAILURE_SIGNAL_HANDLER", "1")
     if os.environ.get("RAY_ADDRESS"):  # inside `ray job submit`: join the cluster
         ray.init()
     else:  # a laptop: a local Ray sized to the machine, no dashboard
@@ -137,6 +135,8 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
     previous_handler = signal.signal(signal.SIGTERM, _raise_stop)
     try:
         algo = _start(run, out_dir, resume)
+        # Ray installs its own SIGTERM handler while starting; ours goes back on top.
+        signal.signal(signal.SIGTERM, _raise_stop)
     except BaseException as err:
         signal.signal(signal.SIGTERM, previous_handler)
         if isinstance(err, KeyboardInterrupt | Stop):
