@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test lint bench clean
+.PHONY: run show test lint bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -14,7 +14,11 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
+# A fresh run folder each time, so no earlier run is ever overwritten.
 run: $(STAMP)
+	$(BIN)/formation train configs/quickstart.yaml --out runs/quickstart-$$(date +%Y%m%d-%H%M%S)
+
+show: $(STAMP)
 	$(BIN)/formation show --setting 1 --out runs/show
 
 test: $(STAMP)

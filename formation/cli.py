@@ -26,7 +26,7 @@ def parse_overrides(pairs: list[str]) -> dict[str, Any]:
 def cmd_show(args: argparse.Namespace) -> int:
     """Plan the best path of one random scenario with the planner and write it as a GIF."""
     from formation.env import FormationParallelEnv
-    from formation.pictures import side_by_side, write_gif
+    from formation.pictures import write_episodes_gif
     from formation.planner import shortest_path
 
     overrides = parse_overrides(args.set)
@@ -48,10 +48,7 @@ def cmd_show(args: argparse.Namespace) -> int:
             ok = info["leader"]["success"]
             print(f"seed {seed}: planner path of {len(path)} steps, replayed: {'success' if ok else 'FAILED'}")
         frames_per_episode.append(frames)
-    longest = max(len(f) for f in frames_per_episode)
-    padded = [f + [f[-1]] * (longest - len(f)) for f in frames_per_episode]
-    movie = [side_by_side([p[t] for p in padded]) for t in range(longest)]
-    out = write_gif(Path(args.out) / f"setting{args.setting}_planner.gif", movie)
+    out = write_episodes_gif(Path(args.out) / f"setting{args.setting}_planner.gif", frames_per_episode)
     print(f"wrote {out}")
     return 0
 

@@ -13,7 +13,7 @@ from collections.abc import Callable
 import numpy as np
 
 from formation.config import GameConfig
-from formation.game import BatchedGame, Observer
+from formation.game import BatchedGame, Observer, ScreenRenderer
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -26,10 +26,22 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     return (max(0.0, centre - half), min(1.0, centre + half))
 
 
-def play_greedy(config: GameConfig, act: Callable[[np.ndarray], np.ndarray], episodes: int, seed: int) -> dict:
-    """Play ``episodes`` episodes at once; per-episode outcomes and summary rates."""
+def play_greedy(config: GameConfig, act: Callable[[np.ndarray], np.ndarray], episodes: int, seed: int,
+                record: int = 0) -> dict:
+    """Play ``episodes`` episodes at once; per-episode outcomes and summary rates. ``record`` > 0 also
+    returns the screens of the first ``record`` episodes (``"screens"``: one list of frames each, from
+    the start to the episode's last step)."""
     game = BatchedGame(config, batch_size=episodes, seed=seed)
     game.reset()
+    renderer = ScreenRenderer(game) if record else None
+    screens: list[list[np.ndarray]] = [[] for _ in range(min(record, episodes))]
+
+    def snapshot(live: np.ndarray) -> None:
+        if renderer is not None:
+            frames = renderer.render()
+            for i, episode in enumerate(screens):
+                if live[i]:
+                    episode.append(frames[i].copy())
     scenarios = [game.scenario(i).to_dict() for i in range(episodes)]
     observer = Observer(game)
     obs = observer.observe(np.ones(episodes, bool))
@@ -39,10 +51,12 @@ def play_greedy(config: GameConfig, act: Callable[[np.ndarray], np.ndarray], epi
     steps = np.zeros(episodes, np.int64)
     returns = np.zeros((episodes, game.n_agents))
     no_reset = np.zeros(episodes, bool)
+    snapshot(live)
     while live.any():
         actions = np.asarray(act(obs))
         actions[~live] = 3  # finished games stand still; nothing of theirs is counted
         game.step(actions)
+        snapshot(live)  # the step's outcome: a finished game shows how it ended
         returns[live] += game.rewards[live]
         ended = live & game.done
         outcome["success"] |= ended & game.success
@@ -63,4 +77,5 @@ def play_greedy(config: GameConfig, act: Callable[[np.ndarray], np.ndarray], epi
                "formation_broken": float(outcome["broken"].mean()), "timeout": float(outcome["timeout"].mean()),
                "steps_success_mean": float(steps[outcome["success"]].mean()) if wins else None,
                "return_mean": {name: float(returns[:, i].mean()) for i, name in enumerate(config.agent_names)}}
-    return {"summary": summary, "scenarios": scenarios, "steps": steps, "returns": returns, **outcome}
+    return {"summary": summary, "scenarios": scenarios, "steps": steps, "returns": returns, "screens": screens,
+            **outcome}

@@ -38,3 +38,10 @@ def write_gif(path: str | Path, frames: list[np.ndarray], scale: int = 4, ms_per
     images[0].save(path, save_all=True, append_images=images[1:], duration=ms_per_frame, loop=0,
                    optimize=False)
     return path
+
+
+def write_episodes_gif(path: str | Path, episodes: list[list[np.ndarray]], **gif_options) -> Path:
+    """Episodes of screens side by side in one GIF; an episode that ends early holds its last screen."""
+    longest = max(len(frames) for frames in episodes)
+    padded = [frames + [frames[-1]] * (longest - len(frames)) for frames in episodes]
+    return write_gif(path, [side_by_side([p[t] for p in padded]) for t in range(longest)], **gif_options)

@@ -9,6 +9,7 @@ iteration), ``tb/`` (TensorBoard), ``checkpoint/`` (RLlib's own format, the late
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import signal
@@ -21,6 +22,7 @@ import yaml
 
 from formation.config import ConfigError
 from formation.learn.config import RunConfig
+from formation.pictures import write_episodes_gif
 
 CHECKPOINT = "checkpoint"
 RESUMABLE = {"train.total_env_steps"}  # what --set may change when resuming
@@ -158,14 +160,17 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
             metrics_file.write(json.dumps(row) + "\n")
             metrics_file.flush()
             for key, value in row.items():
-                writer.add_scalar(key, value, int(row["env_steps"]))
+                if math.isfinite(value):  # e.g. no episode ended this iteration: nothing to plot
+                    writer.add_scalar(key, value, int(row["env_steps"]))
             if not quiet:
                 progress.show(int(row["env_steps"]), algo.last_eval.get("success"), row["env_steps_per_s"])
             if iteration % run.checkpoint.every_iterations == 0:
                 save_checkpoint(algo, out_dir)
-        summary = algo.evaluate_greedy()
-        algo.last_eval = summary
+        final = algo.play_greedy(record=run.eval.gif_episodes)
+        summary = algo.last_eval = final["summary"]
         save_checkpoint(algo, out_dir)
+        if final["screens"]:
+            gif = write_episodes_gif(out_dir / "greedy.gif", final["screens"])
     except (KeyboardInterrupt, Stop):
         save_checkpoint(algo, out_dir)
         print(f"\nstopped: checkpoint saved in {checkpoint_path(out_dir)}; continue with --resume", file=sys.stderr)
@@ -181,6 +186,8 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         progress.show(algo.counters["env_steps"], summary["success"], 0.0, final=True)
         print(f"greedy success {summary['success']:.1%} on {summary['episodes']} held-out scenarios; "
               f"run folder {out_dir}")
+        if run.eval.gif_episodes:
+            print(f"greedy episodes: {gif}")
     return summary
 
 

@@ -63,6 +63,10 @@ def test_train_writes_a_checkpoint_and_resume_continues(cluster, tmp_path):
     summary = train(SMOKE, str(out), quiet=True)
     assert 0.0 <= summary["success"] <= 1.0 and summary["episodes"] == 50
     assert (out / "checkpoint" / "algorithm_state.pkl").is_file()
+    from PIL import Image
+
+    with Image.open(out / "greedy.gif") as gif:  # the final evaluation's first 3 episodes side by side
+        assert gif.n_frames >= 2 and gif.size[0] > 3 * 84 * 4
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     first_run_steps = rows[-1]["env_steps"]
     assert first_run_steps >= 3000
@@ -93,3 +97,27 @@ def test_asking_for_more_than_the_cluster_has_fails_fast(cluster, tmp_path):
     with pytest.raises(ConfigError, match=r"^resources\.num_rollout_actors: 8 actors"):
         train(SMOKE, str(tmp_path / "cpu"), overrides={"resources.num_rollout_actors": 8,
                                                        "resources.cpus_per_rollout_actor": 1.0})
+
+
+def test_the_stock_rllib_path_trains_both_policies_on_the_papers_reward(cluster):
+    import torch
+
+    run, algo = build(1, path="stock", shaping=0.0, demonstrations=0.0, margin=0.0, dagger=False,
+                      exploration="independent", replay_ratio=0.25, learning_starts=200)
+    try:
+        before = {m: [p.detach().clone() for p in module.parameters()] for m, module in algo.local_modules().items()}
+        assert set(before) == {"leader", "follower"}
+        train_until(algo, 800)
+        assert algo.counters["updates"] > 0
+        after = algo.local_modules()
+        for m, params in before.items():
+            assert any(not torch.equal(p, q) for p, q in zip(params, after[m].parameters())), m
+        summary = algo.evaluate_greedy(episodes=10)
+        assert summary["episodes"] == 10
+    finally:
+        algo.stop()
+
+
+def test_the_stock_path_refuses_our_recipe_in_one_line():
+    with pytest.raises(ConfigError, match=r"^train\.path: stock runs RLlib's DQN on the paper's reward alone"):
+        RunConfig.load(SMOKE, {"train.path": "stock"})

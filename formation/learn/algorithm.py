@@ -172,6 +172,10 @@ class GreedyEvaluationMixin:
 
     # -- greedy evaluation (the same code as `formation evaluate`)
     def evaluate_greedy(self, episodes: int | None = None, seed: int | None = None) -> dict:
+        """Summary rates of greedy play on held-out scenarios (``formation.evaluate.play_greedy``)."""
+        return self.play_greedy(episodes, seed)["summary"]
+
+    def play_greedy(self, episodes: int | None = None, seed: int | None = None, record: int = 0) -> dict:
         run = self.run
         modules = self.local_modules()
         names = module_of_agent(run)
@@ -183,8 +187,8 @@ class GreedyEvaluationMixin:
                 greedy = {m: modules[m].forward_inference({Columns.OBS: x})[Columns.ACTIONS].numpy() for m in used}
             return np.stack([greedy[m] for m in names], axis=1)
 
-        result = play_greedy(run.game, act, episodes or run.eval.episodes, run.eval.seed if seed is None else seed)
-        return result["summary"]
+        return play_greedy(run.game, act, episodes or run.eval.episodes, run.eval.seed if seed is None else seed,
+                           record=record)
 
     def local_modules(self) -> dict:
         """CPU copies of the learner's current modules."""

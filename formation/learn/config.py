@@ -25,6 +25,7 @@ from formation.learn.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
 EXPLORATIONS = ("independent", "joint")
+LABEL_ORDERS = ("planner", "lockstep")
 
 
 @dataclass(frozen=True)
@@ -33,25 +34,33 @@ class TrainSettings:
 
     gamma: float = 0.97
     n_step: int = 3
-    lr: float = 3e-4
-    batch_size: int = 128
+    lr: float = 1e-3
+    batch_size: int = 64
     replay_capacity: int = 100_000
-    replay_ratio: float = 0.125  # learner updates per env step, whatever the number of actors
-    learning_starts: int = 5_000  # env steps in replay before the first update
-    target_update_every: int = 1_000  # learner updates between target-network syncs
+    replay_ratio: float = 0.25  # learner updates per env step, whatever the number of actors
+    learning_starts: int = 2_000  # env steps in replay before the first update
+    target_update_every: int = 100  # learner updates between target-network syncs
     epsilon_start: float = 1.0
     epsilon_end: float = 0.05
-    epsilon_env_steps: int = 100_000
+    epsilon_env_steps: int = 10_000
     # independent: each agent explores on its own; joint: with probability epsilon the whole team
     # explores together, every follower copying the leader's random move (keeps the formation)
-    exploration: str = "independent"
+    exploration: str = "joint"
     shaping: float = 1.0  # weight of potential-based shaping; 0 = the paper's reward alone
     potential: str = "distance"  # none | distance | planner (see formation.learn.shaping)
     planner_slack: int = 6  # planner potential: paths longer than the lower bound + slack count as lost
     steps_per_sample: int = 8  # steps of all of an actor's games per push to the replay
-    demonstrations: float = 0.0  # fraction of games played by the clairvoyant planner
-    margin: float = 0.0  # DQfD large-margin loss weight towards the planner's actions (labels)
-    dagger: bool = False  # label every visited state with the planner's joint action (DAgger)
+    demonstrations: float = 0.5  # fraction of games played by the clairvoyant planner (the teacher)
+    margin: float = 5.0  # DQfD large-margin loss weight towards the teacher's actions (labels)
+    dagger: bool = True  # label every visited state with the teacher's joint action (DAgger)
+    # label_order and robust_first_step shape the labels; they do nothing when dagger is false
+    # which shortest-path first action labels a state: the planner's own pick ("planner") or the first in a
+    # fixed order ("lockstep": everyone the same move first, then forward, sideways towards the
+    # destination, away, stay); a state has ~8 optimal joint actions, so the order makes labels learnable
+    label_order: str = "lockstep"
+    # DAgger labels of an episode's first step (no motion on screen yet): keep a path for the most obstacle
+    # velocities instead of the clairvoyant planner's choice
+    robust_first_step: bool = True
     prioritized: bool = False
     followers_share_policy: bool = True
     hidden: int = 128
@@ -80,12 +89,15 @@ class TrainSettings:
             _integer(self, name, 1)
         _integer(self, "learning_starts", 0)
         _integer(self, "seed", 0)
-        for name in ("prioritized", "followers_share_policy", "dagger"):
+        for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:
             raise ConfigError(f"train.exploration: {self.exploration!r} is not allowed; "
                               f"allowed: {', '.join(EXPLORATIONS)}")
+        if self.label_order not in LABEL_ORDERS:
+            raise ConfigError(f"train.label_order: {self.label_order!r} is not allowed; "
+                              f"allowed: {', '.join(LABEL_ORDERS)}")
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
         if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0
@@ -117,11 +129,16 @@ class EvalSettings:
     every_env_steps: int = 25_000
     episodes: int = 200
     seed: int = 1_000_000  # evaluation scenarios come from seeds training never uses
+    gif_episodes: int = 3  # the final evaluation's first episodes, side by side, in the run folder's greedy.gif
 
     def __post_init__(self) -> None:
         _integer(self, "every_env_steps", 1, section="eval")
         _integer(self, "episodes", 1, section="eval")
         _integer(self, "seed", 0, section="eval")
+        _integer(self, "gif_episodes", 0, section="eval")
+        if self.gif_episodes > self.episodes:
+            raise ConfigError(f"eval.gif_episodes: {self.gif_episodes} is not allowed; "
+                              f"allowed: 0 to eval.episodes ({self.episodes})")
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_
 from formation.learn.config import RunConfig, TrainSettings
 from formation.learn.rollout import GameRollout, concatenate
 from formation.learn.shaping import Potential
+from formation.learn.teacher import Teacher
 
 
 def spaces_of(run: RunConfig) -> tuple[gym.spaces.Box, gym.spaces.Discrete]:
@@ -88,8 +89,9 @@ class RolloutActor(EnvRunner, Checkpointable):
         self._rng = np.random.default_rng([t.seed, index])  # exploration
         self._demo_games = int(round(run.train.demonstrations * games))
         self._plans: dict[int, list] = {}
-        self._capped: dict = {}  # game configs with max_steps capped, for the planner's labels
-        for i in range(self._demo_games):
+        self._teacher = Teacher(run.game, t.planner_slack, t.label_order, t.robust_first_step) if t.dagger else None
+        self._demos_follow_labels = t.dagger and (t.label_order != "planner" or t.robust_first_step)
+        for i in range(0 if self._demos_follow_labels else self._demo_games):
             self._plan(i)
 
     def make_module(self) -> None:
@@ -117,19 +119,12 @@ class RolloutActor(EnvRunner, Checkpointable):
         self._plans[game] = list(path or [])
 
     def _planner_labels(self) -> np.ndarray:
-        """DAgger: the planner's joint action in every game's present state (-1 where no path
-        within the lower bound + planner_slack steps exists)."""
-        from formation.planner import lower_bound, shortest_path
-
+        """DAgger: the teacher's joint action in every game's present state (-1 where it has none)."""
         game, labels = self.rollout.game, np.full((self.rollout.batch_size, self.rollout.n_agents), -1, np.int8)
         for i in range(self.rollout.batch_size):
-            scenario = game.scenario(i)
-            limit = lower_bound(scenario, self.run.game) + self.run.train.planner_slack
-            if limit not in self._capped:
-                self._capped[limit] = self.run.game.replace(max_steps=limit)
-            path = shortest_path(scenario, config=self._capped[limit])
-            if path:
-                labels[i] = path[0]
+            joint = self._teacher.label(game.scenario(i), first_step=game.steps[i] == 0)
+            if joint is not None:
+                labels[i] = joint
         return labels
 
     def _actions(self, observations: np.ndarray) -> np.ndarray:
@@ -149,11 +144,14 @@ class RolloutActor(EnvRunner, Checkpointable):
             actions = self._actions(rollout.observations)
             labels = self._planner_labels() if run.train.dagger else np.full(actions.shape, -1, np.int8)
             for i in range(self._demo_games):  # demonstration games follow the planner's path
-                if self._plans[i]:
+                if self._demos_follow_labels:  # ... or the teacher's labels where these differ from it
+                    actions[i] = np.where(labels[i] >= 0, labels[i], actions[i])
+                elif self._plans[i]:
                     actions[i] = labels[i] = self._plans[i].pop(0)
             chunks.append(rollout.step(actions, labels=labels))
             for i in np.flatnonzero(rollout.game.steps[: self._demo_games] == 0):
-                self._plan(int(i))
+                if not self._demos_follow_labels:
+                    self._plan(int(i))
         records = concatenate(chunks)
         steps = rollout.batch_size * run.train.steps_per_sample
         self.num_env_steps_sampled_lifetime += steps

@@ -1,0 +1,111 @@
+"""DAgger's teacher: the clairvoyant planner's joint action for any state a learner visits.
+
+The planner knows the obstacles' velocities; the learners see them only from the second screen on.
+Labels are made learnable in two ways: among the joint actions that start a shortest path, a fixed
+order picks one (``lockstep``), and on an episode's first step the label is the joint action that
+keeps a path open for the most obstacle velocities (``robust_first_step``), so the same first
+screen always gets the same label.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+
+import numpy as np
+
+from formation.config import GameConfig
+from formation.game import BatchedGame, Scenario
+from formation.planner import lower_bound, shortest_path
+
+# robust first-step labels try every velocity of this many obstacles, those nearest the leader's row;
+# the others count as known (4 velocities each: trying all 3 of setting 1 costs 64 planner calls a label)
+ROBUST_OBSTACLES = 2
+
+
+def lockstep_order(n_agents: int, toward: int) -> list[tuple[int, ...]]:
+    """Every joint action, lockstep ones (all agents the same move) first, then by each agent's move,
+    leader first: forward, sideways ``toward`` the destination (1 = FL or 2 = FR), the other way, stay."""
+    rank = {0: 0, toward: 1, 3 - toward: 2, 3: 3}
+    return sorted(itertools.product(range(4), repeat=n_agents), key=lambda a: (len(set(a)) > 1, [rank[m] for m in a]))
+
+
+class Teacher:
+    """DAgger labels from the clairvoyant planner: a joint action for a game's present state.
+
+    ``order="planner"``: the first action of the planner's shortest path. ``order="lockstep"``: of the
+    joint actions that start a shortest path (often 8 of the 16), the first in ``lockstep_order``, so
+    that labels follow one simple rule. ``robust_first_step``: on an episode's first step, whose
+    screens do not show the obstacles' motion yet, the first joint action in ``lockstep_order``
+    after which a path is left for the most velocities of the obstacles nearest the agents, instead
+    of the clairvoyant one.
+    Paths count up to the lower bound + ``slack`` steps; a state with none gets no label (None).
+    """
+
+    def __init__(self, config: GameConfig, slack: int, order: str = "planner", robust_first_step: bool = False):
+        self.config, self.slack, self.order, self.robust_first_step = config, slack, order, robust_first_step
+        self._probe = BatchedGame(config, batch_size=1)  # plays one joint action from a scenario
+        self._capped: dict[int, GameConfig] = {}
+        self._robust_labels: dict[tuple, tuple[int, ...] | None] = {}
+        destination, agents = config.destination[1], 1 + config.n_followers
+        self._orders = [lockstep_order(agents, 2 if col < destination else 1) for col in range(config.width)]
+        speeds = [sign * speed for speed in config.obstacle_speeds for sign in (1, -1)]
+        self._velocities = list(itertools.product(speeds, repeat=min(ROBUST_OBSTACLES, config.n_obstacles)))
+
+    def label(self, scenario: Scenario, first_step: bool = False) -> tuple[int, ...] | None:
+        order = self._orders[scenario.leader[1]]
+        if first_step and self.robust_first_step:
+            near = self._nearest_obstacles(scenario)
+            seen = (scenario.leader, scenario.followers,
+                    tuple((r, c, None if i in near else v) for i, (r, c, v) in enumerate(scenario.obstacles)))
+            if seen not in self._robust_labels:  # few distinct first screens on a small board
+                if len(self._robust_labels) > 100_000:
+                    self._robust_labels.clear()
+                self._robust_labels[seen] = self._robust(scenario, near, order)
+            return self._robust_labels[seen]
+        path = self._path(scenario)
+        if path is None:
+            return None
+        planned = tuple(int(a) for a in path[0])
+        if self.order == "lockstep":
+            for joint in order:
+                if joint == planned or self._opens(scenario, joint, max_steps=len(path) - 1):
+                    return joint
+        return planned
+
+    def _nearest_obstacles(self, scenario: Scenario) -> list[int]:
+        """Indices of the ``ROBUST_OBSTACLES`` obstacles whose rows are nearest the leader's."""
+        rows = [abs(r - scenario.leader[0]) for r, _, _ in scenario.obstacles]
+        return sorted(range(len(rows)), key=lambda i: (rows[i], i))[:ROBUST_OBSTACLES]
+
+    def _robust(self, scenario: Scenario, near: list[int], order: list[tuple[int, ...]]) -> tuple[int, ...] | None:
+        hypotheses = []
+        for velocities in self._velocities:
+            obstacles = list(scenario.obstacles)
+            for i, v in zip(near, velocities):
+                obstacles[i] = (obstacles[i][0], obstacles[i][1], v)
+            hypotheses.append(dataclasses.replace(scenario, obstacles=tuple(obstacles)))
+        best, best_count = None, 0
+        for joint in order:
+            count = sum(self._opens(hypothesis, joint) for hypothesis in hypotheses)
+            if count > best_count:
+                best, best_count = joint, count
+            if count == len(hypotheses):
+                break
+        return best
+
+    def _opens(self, scenario: Scenario, joint: tuple[int, ...], max_steps: int | None = None) -> bool:
+        """Whether ``joint`` wins at once or leaves a path of at most ``max_steps`` more steps
+        (default: the lower bound + slack)."""
+        probe = self._probe
+        probe.load([scenario])
+        probe.step(np.array([joint]))
+        if probe.done[0] or max_steps == 0:
+            return bool(probe.success[0])
+        return self._path(probe.scenario(0), max_steps) is not None
+
+    def _path(self, scenario: Scenario, max_steps: int | None = None) -> list | None:
+        limit = max_steps if max_steps is not None else lower_bound(scenario, self.config) + self.slack
+        if limit not in self._capped:
+            self._capped[limit] = self.config.replace(max_steps=limit)
+        return shortest_path(scenario, config=self._capped[limit])

@@ -1,0 +1,94 @@
+"""DAgger's teacher: labels start shortest paths, follow the lockstep order, and do not depend on
+what the first screen cannot show."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from formation.config import GameConfig
+from formation.game import BatchedGame
+from formation.learn.teacher import Teacher, lockstep_order
+from formation.planner import shortest_path
+
+SMALL = GameConfig.from_setting(None, height=9, width=9, n_obstacles=1)
+
+
+def scenarios(config, seeds):
+    game = BatchedGame(config, batch_size=len(seeds))
+    out = []
+    for i, seed in enumerate(seeds):
+        game.reset(seed=seed, mask=np.arange(len(seeds)) == i)
+        out.append(game.scenario(i))
+    return out
+
+
+def steps_after(config, scenario, joint):
+    """Length of the shortest path left after playing ``joint`` (0 if it wins, None if it loses)."""
+    game = BatchedGame(config, batch_size=1)
+    game.load([scenario])
+    game.step(np.array([joint]))
+    if game.done[0]:
+        return 0 if game.success[0] else None
+    path = shortest_path(game.scenario(0), config=config)
+    return None if path is None else len(path)
+
+
+@pytest.mark.parametrize("n_agents,toward", [(2, 1), (2, 2), (3, 1)])
+def test_lockstep_order_lists_every_joint_action_once_lockstep_first(n_agents, toward):
+    order = lockstep_order(n_agents, toward)
+    assert sorted(order) == sorted(itertools.product(range(4), repeat=n_agents))
+    assert order[:4] == [(m,) * n_agents for m in (0, toward, 3 - toward, 3)]
+    assert order[4][0] == 0  # then the leader's forward move first
+
+
+def test_planner_order_labels_with_the_planners_first_action():
+    teacher = Teacher(SMALL, slack=200)
+    for scenario in scenarios(SMALL, range(10)):
+        path = shortest_path(scenario, config=SMALL)
+        assert teacher.label(scenario) == (None if path is None else tuple(int(a) for a in path[0]))
+
+
+def test_lockstep_labels_start_a_shortest_path_and_are_the_first_such_in_the_order():
+    teacher = Teacher(SMALL, slack=200, order="lockstep")
+    checked = 0
+    for scenario in scenarios(SMALL, range(20)):
+        path = shortest_path(scenario, config=SMALL)
+        if path is None:
+            continue
+        label = teacher.label(scenario)
+        assert steps_after(SMALL, scenario, label) == len(path) - 1
+        order = lockstep_order(2, 2 if scenario.leader[1] < SMALL.destination[1] else 1)
+        earlier = order[: order.index(label)]
+        assert all(steps_after(SMALL, scenario, joint) != len(path) - 1 for joint in earlier)
+        checked += 1
+    assert checked >= 15
+
+
+def test_robust_first_step_label_is_the_same_whatever_the_hidden_velocities():
+    teacher = Teacher(SMALL, slack=6, order="lockstep", robust_first_step=True)
+    speeds = [1, -1, 2, -2]
+    distinct = set()
+    for scenario in scenarios(SMALL, range(8)):
+        labels = set()
+        for v in speeds:
+            seen_the_same = scenario.__class__(scenario.leader, scenario.followers,
+                                               tuple((r, c, v) for r, c, _ in scenario.obstacles))
+            labels.add(teacher.label(seen_the_same, first_step=True))
+        assert len(labels) == 1, labels
+        distinct |= labels
+        # after the first step the teacher is clairvoyant again
+        assert teacher.label(scenario) == Teacher(SMALL, slack=6, order="lockstep").label(scenario)
+    assert None not in distinct
+
+
+def test_robust_label_keeps_a_path_for_at_least_as_many_velocities_as_any_other_action():
+    teacher = Teacher(SMALL, slack=6, order="lockstep", robust_first_step=True)
+    speeds = [1, -1, 2, -2]
+    for scenario in scenarios(SMALL, range(5)):
+        variants = [scenario.__class__(scenario.leader, scenario.followers,
+                                       tuple((r, c, v) for r, c, _ in scenario.obstacles)) for v in speeds]
+
+        kept = {joint: sum(teacher._opens(variant, joint) for variant in variants)
+                for joint in itertools.product(range(4), repeat=2)}
+        assert kept[teacher.label(scenario, first_step=True)] == max(kept.values())
