@@ -43,7 +43,7 @@ import numpy as np
 from formation.config import ConfigError, GameConfig
 from formation.game import COLLISION_OFFSETS, MOVES, BatchedGame, Scenario, parse_scenario
 
-__all__ = ["lower_bound", "shortest_path"]
+__all__ = ["lower_bound", "shortest_first_moves", "shortest_path"]
 
 N_ACTIONS = len(MOVES)
 # Largest state-code space deduplicated with a dense array (int32 entries); above it, np.unique.
@@ -82,6 +82,28 @@ def shortest_path(scenario: dict | Scenario, setting: int | None = 1, *, config:
         path = _search(board, future.zones(deadline), start, deadline)
         if path is not None:
             return path
+    return None
+
+
+def shortest_first_moves(scenario: dict | Scenario, *, config: GameConfig) -> tuple[int, list[tuple[int, ...]]] | None:
+    """The length of a shortest successful path and every joint action that starts one (in index
+    order), from one search; ``None`` if no path ends in success within ``max_steps``. At most
+    two followers (the first moves of a layer's states are kept as 64-bit masks)."""
+    parsed = parse_scenario(scenario, config)
+    n_agents = 1 + len(parsed.followers)
+    if N_ACTIONS ** n_agents > 64:
+        raise ConfigError(f"n_followers: {n_agents - 1} is not allowed here; allowed: 1 or 2")
+    start = (parsed.leader, *parsed.followers)
+    bound = _steps_to_go(parsed.leader, config)
+    if bound > config.max_steps:
+        return None
+    board = _Board(config)
+    future = _ObstacleFuture(config, parsed, board)
+    for deadline in _deadlines(bound, config.max_steps):
+        found = _search_first_moves(board, future.zones(deadline), start, deadline)
+        if found is not None:
+            length, mask = found
+            return length, [_split(j, n_agents) for j in range(N_ACTIONS ** n_agents) if (mask >> j) & 1]
     return None
 
 
@@ -184,6 +206,37 @@ def _search(board: _Board, zones: np.ndarray, start: tuple, deadline: int) -> li
         layer = cells[keep]
         parents.append(parent[keep])
         joint_actions.append(joint[keep])
+    return None
+
+
+def _search_first_moves(board: _Board, zones: np.ndarray, start: tuple, deadline: int) -> tuple[int, int] | None:
+    """``_search`` that keeps, for every state of a layer, the set of first joint actions of the
+    paths reaching it (a bit mask, merged over duplicates): ``(length, mask)`` of the first
+    layer with a success, the mask over all successes in it."""
+    n_agents = len(start)
+    n_joint = N_ACTIONS ** n_agents
+    layer = np.array([[r * board.width + c for r, c in start]], dtype=np.int32)
+    firsts = None  # per state of the layer: mask of first joint actions (None at the start)
+    dedupe = _Deduplicator(board, n_agents)
+    for t in range(deadline):
+        landing, allowed = _expand(board, layer, zones[t + 1], deadline - t - 1)
+        moves = np.flatnonzero(allowed)
+        parent, joint = np.divmod(moves, n_joint)
+        actions = [(joint // N_ACTIONS ** (n_agents - 1 - i)) % N_ACTIONS for i in range(n_agents)]
+        cells = np.stack([landing[parent, i, a] for i, a in enumerate(actions)], axis=1)
+        carried = (np.uint64(1) << joint.astype(np.uint64)) if firsts is None else firsts[parent]
+        success = cells[:, 0] == board.destination
+        if success.any():
+            return t + 1, int(np.bitwise_or.reduce(carried[success]))
+        if len(cells) == 0:
+            return None
+        codes = dedupe._codes(cells)
+        unique, inverse = np.unique(codes, return_inverse=True)
+        firsts = np.zeros(len(unique), np.uint64)
+        np.bitwise_or.at(firsts, inverse, carried)
+        keep = np.zeros(len(unique), np.intp)
+        keep[inverse] = np.arange(len(cells))  # one copy of each state (any: they are equal)
+        layer = cells[keep]
     return None
 
 

@@ -36,7 +36,7 @@ def test_the_default_recipe_learns_the_small_board(tmp_path):
     greedy = result["greedy"]
     assert result["env_steps"] >= 40_000
     assert greedy["episodes"] == 200
-    # a random policy succeeds in under 5% (above); the recipe measured 92-93%
-    assert greedy["success"] >= 0.7, greedy
+    # the issue asks for 80%; a random policy succeeds in under 5% (above); the recipe measured 92.5-93%
+    assert greedy["success"] >= 0.8, greedy
     # successes take close to the shortest path (8 steps from the start row on a 9x9 board)
     assert greedy["steps_success_mean"] < 10, greedy

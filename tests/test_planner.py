@@ -9,7 +9,7 @@ import pytest
 from formation.config import ConfigError, GameConfig
 from formation.env import parallel_env
 from formation.game import BatchedGame, Scenario, parse_scenario
-from formation.planner import lower_bound, shortest_path
+from formation.planner import lower_bound, shortest_first_moves, shortest_path
 
 TINY = dict(height=7, width=7, n_obstacles=2, max_steps=14)  # small enough for the brute force
 
@@ -140,6 +140,36 @@ def test_two_followers_match_brute_force():
             if found == 2:
                 return
     pytest.fail("no tiny two-follower scenario needing a detour")
+
+
+def test_first_moves_are_exactly_the_joint_actions_that_start_a_shortest_path():
+    """Every joint action is played once with the game; it starts a shortest path when it wins at
+    once on a one-step path, or the brute force finds the rest one step shorter."""
+    import itertools
+
+    checked = 0
+    for setting, n_followers in ((1, 1), (2, 1), (1, 2)):
+        for seed, scenario, config in tiny_scenarios(setting, 12, n_followers=n_followers, max_steps=10):
+            found = shortest_first_moves(scenario, config=config)
+            path = shortest_path(scenario, config=config)
+            if path is None:
+                assert found is None
+                continue
+            length, moves = found
+            assert length == len(path) and tuple(int(a) for a in path[0]) in moves
+            probe, expected = BatchedGame(config, 1), []
+            for joint in itertools.product(range(4), repeat=1 + n_followers):
+                probe.load([scenario])
+                probe.step(np.array([joint]))
+                if probe.done[0]:
+                    starts = bool(probe.success[0]) and length == 1
+                else:
+                    starts = brute_force_length(probe.scenario(0), config, length - 1) == length - 1
+                if starts:
+                    expected.append(joint)
+            assert moves == expected, (setting, n_followers, seed)
+            checked += 1
+    assert checked >= 20
 
 
 def test_needs_more_than_the_lower_bound():

@@ -16,7 +16,7 @@ import numpy as np
 
 from formation.config import GameConfig
 from formation.game import BatchedGame, Scenario
-from formation.planner import lower_bound, shortest_path
+from formation.planner import lower_bound, shortest_first_moves, shortest_path
 
 # robust first-step labels try every velocity of this many obstacles, those nearest the leader's row;
 # the others count as known (4 velocities each: trying all 3 of setting 1 costs 64 planner calls a label)
@@ -63,6 +63,12 @@ class Teacher:
                     self._robust_labels.clear()
                 self._robust_labels[seen] = self._robust(scenario, near, order)
             return self._robust_labels[seen]
+        if self.order == "lockstep" and self.config.n_followers <= 2:  # one search finds every first move
+            found = shortest_first_moves(scenario, config=self._capped_config(self._limit(scenario)))
+            if found is None:
+                return None
+            starts = set(found[1])
+            return next(joint for joint in order if joint in starts)
         path = self._path(scenario)
         if path is None:
             return None
@@ -105,7 +111,13 @@ class Teacher:
         return self._path(probe.scenario(0), max_steps) is not None
 
     def _path(self, scenario: Scenario, max_steps: int | None = None) -> list | None:
-        limit = max_steps if max_steps is not None else lower_bound(scenario, self.config) + self.slack
-        if limit not in self._capped:
-            self._capped[limit] = self.config.replace(max_steps=limit)
-        return shortest_path(scenario, config=self._capped[limit])
+        limit = max_steps if max_steps is not None else self._limit(scenario)
+        return shortest_path(scenario, config=self._capped_config(limit))
+
+    def _limit(self, scenario: Scenario) -> int:
+        return lower_bound(scenario, self.config) + self.slack
+
+    def _capped_config(self, max_steps: int) -> GameConfig:
+        if max_steps not in self._capped:
+            self._capped[max_steps] = self.config.replace(max_steps=max_steps)
+        return self._capped[max_steps]
