@@ -71,18 +71,7 @@ def shortest_path(scenario: dict | Scenario, setting: int | None = 1, *, config:
     elif overrides:
         raise ConfigError(f"config: give either config= or setting overrides, not both "
                           f"(got {', '.join(sorted(overrides))})")
-    parsed = parse_scenario(scenario, config)
-    start = (parsed.leader, *parsed.followers)
-    bound = _steps_to_go(parsed.leader, config)
-    if bound > config.max_steps:
-        return None
-    board = _Board(config)
-    future = _ObstacleFuture(config, parsed, board)
-    for deadline in _deadlines(bound, config.max_steps):
-        path = _search(board, future.zones(deadline), start, deadline)
-        if path is not None:
-            return path
-    return None
+    return _first_found(_search, parse_scenario(scenario, config), config)
 
 
 def shortest_first_moves(scenario: dict | Scenario, *, config: GameConfig) -> tuple[int, list[tuple[int, ...]]] | None:
@@ -93,6 +82,15 @@ def shortest_first_moves(scenario: dict | Scenario, *, config: GameConfig) -> tu
     n_agents = 1 + len(parsed.followers)
     if N_ACTIONS ** n_agents > 64:
         raise ConfigError(f"n_followers: {n_agents - 1} is not allowed here; allowed: 1 or 2")
+    found = _first_found(_search_first_moves, parsed, config)
+    if found is None:
+        return None
+    length, mask = found
+    return length, [_split(j, n_agents) for j in range(N_ACTIONS ** n_agents) if (mask >> j) & 1]
+
+
+def _first_found(search, parsed: Scenario, config: GameConfig):
+    """Run ``search(board, zones, start, deadline)`` with growing deadlines; its first answer."""
     start = (parsed.leader, *parsed.followers)
     bound = _steps_to_go(parsed.leader, config)
     if bound > config.max_steps:
@@ -100,10 +98,9 @@ def shortest_first_moves(scenario: dict | Scenario, *, config: GameConfig) -> tu
     board = _Board(config)
     future = _ObstacleFuture(config, parsed, board)
     for deadline in _deadlines(bound, config.max_steps):
-        found = _search_first_moves(board, future.zones(deadline), start, deadline)
+        found = search(board, future.zones(deadline), start, deadline)
         if found is not None:
-            length, mask = found
-            return length, [_split(j, n_agents) for j in range(N_ACTIONS ** n_agents) if (mask >> j) & 1]
+            return found
     return None
 
 
