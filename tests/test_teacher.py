@@ -92,3 +92,47 @@ def test_robust_label_keeps_a_path_for_at_least_as_many_velocities_as_any_other_
         kept = {joint: sum(teacher._opens(variant, joint) for variant in variants)
                 for joint in itertools.product(range(4), repeat=2)}
         assert kept[teacher.label(scenario, first_step=True)] == max(kept.values())
+
+
+def test_safe_labels_keep_a_path_and_bring_the_leader_closer_when_they_can():
+    slack = 6
+    teacher = Teacher(SMALL, slack=slack, order="safe")
+    dest_row, dest_col = SMALL.destination
+
+    def to_go(cell):
+        return max(cell[0] - dest_row, abs(cell[1] - dest_col))
+
+    checked = 0
+    for scenario in scenarios(SMALL, range(20)):
+        label = teacher.label(scenario)
+        if label is None:
+            assert shortest_path(scenario, config=SMALL.replace(max_steps=to_go(scenario.leader) + slack)) is None
+            continue
+        assert teacher._opens(scenario, label)
+        game = BatchedGame(SMALL, batch_size=1)
+        game.load([scenario])
+        game.step(np.array([label]))
+        closer = to_go(tuple(game.positions[0, 0])) < to_go(scenario.leader)
+        if not closer:  # then no move that brings the leader closer keeps a path
+            order = lockstep_order(2, 2 if scenario.leader[1] < dest_col else 1)
+            for joint in order:
+                probe = BatchedGame(SMALL, batch_size=1)
+                probe.load([scenario])
+                probe.step(np.array([joint]))
+                if to_go(tuple(probe.positions[0, 0])) < to_go(scenario.leader):
+                    assert not teacher._opens(scenario, joint)
+        checked += 1
+    assert checked >= 15
+
+
+def test_following_safe_labels_succeeds():
+    teacher = Teacher(SMALL, slack=6, order="safe", robust_first_step=True)
+    game = BatchedGame(SMALL, batch_size=1)
+    wins = 0
+    for seed in range(20):
+        game.reset(seed=seed)
+        while not game.done[0]:
+            label = teacher.label(game.scenario(0), first_step=game.steps[0] == 0)
+            game.step(np.array([label if label is not None else (3, 3)]))
+        wins += bool(game.success[0])
+    assert wins >= 18

@@ -25,7 +25,7 @@ from formation.learn.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
 EXPLORATIONS = ("independent", "joint")
-LABEL_ORDERS = ("planner", "lockstep")
+LABEL_ORDERS = ("planner", "lockstep", "safe")
 
 
 @dataclass(frozen=True)

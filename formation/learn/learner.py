@@ -64,6 +64,7 @@ class FormationLearner(DQNTorchLearner):
             y = double_q_target(batch[RETURNS], batch[DISCOUNTS], fwd_out[QF_NEXT_PREDS], fwd_out[QF_TARGET_NEXT_PREDS])
         td = q_taken - y
         loss = (batch[WEIGHTS] * torch.nn.functional.smooth_l1_loss(q_taken, y, reduction="none")).mean()
+        priority = td.detach().abs()
         if config.margin > 0:
             labels = batch[LABELS].long()
             taught = labels >= 0
@@ -73,7 +74,9 @@ class FormationLearner(DQNTorchLearner):
                 margins = torch.full_like(q, MARGIN).scatter(1, a_e, 0.0)
                 large_margin = (q + margins).max(1).values - q.gather(1, a_e).squeeze(1)
                 loss = loss + config.margin * large_margin[taught].mean()
-        self._td[module_id] = td.detach().abs().cpu().numpy()
+                # prioritized replay also revisits the states where the module disagrees with the teacher
+                priority = priority + config.margin * (large_margin.detach() * taught)
+        self._td[module_id] = priority.cpu().numpy()
         self.metrics.log_value((module_id, "q_mean"), q_taken.detach().mean(), window=1)
         self.metrics.log_value((module_id, "td_abs_mean"), td.detach().abs().mean(), window=1)
         return loss
@@ -100,8 +103,8 @@ class FormationLearner(DQNTorchLearner):
                         _no_metrics_reduce=True)
             self.num_updates += 1
             if cfg.prioritized:
-                td = np.stack([self._td[m].reshape(-1, n).max(0) for m in batches]).max(0)
-                replay.update_priorities.remote(sample["ids"], td)
+                priority = np.stack([self._td[m].reshape(-1, n).max(0) for m in batches]).max(0)
+                replay.update_priorities.remote(sample["ids"], priority)
         return self.metrics.reduce()
 
     def get_state(self, components=None, *, not_components=None, **kwargs):

@@ -15,7 +15,7 @@ import itertools
 import numpy as np
 
 from formation.config import GameConfig
-from formation.game import BatchedGame, Scenario
+from formation.game import MOVES, BatchedGame, Scenario
 from formation.planner import lower_bound, shortest_first_moves, shortest_path
 
 # robust first-step labels try every velocity of this many obstacles, those nearest the leader's row;
@@ -35,7 +35,9 @@ class Teacher:
 
     ``order="planner"``: the first action of the planner's shortest path. ``order="lockstep"``: of the
     joint actions that start a shortest path (often 8 of the 16), the first in ``lockstep_order``, so
-    that labels follow one simple rule. ``robust_first_step``: on an episode's first step, whose
+    that labels follow one simple rule. ``order="safe"``: the first joint action in ``lockstep_order``
+    after which a path is left (forward unless that dooms the team), a rule that depends mostly on
+    the obstacles nearby. ``robust_first_step``: on an episode's first step, whose
     screens do not show the obstacles' motion yet, the first joint action in ``lockstep_order``
     after which a path is left for the most velocities of the obstacles nearest the agents, instead
     of the clairvoyant one.
@@ -63,6 +65,13 @@ class Teacher:
                     self._robust_labels.clear()
                 self._robust_labels[seen] = self._robust(scenario, near, order)
             return self._robust_labels[seen]
+        if self.order == "safe":  # the first move that keeps a path, those bringing the leader closer first
+            for k, joint in enumerate(self._closer_first(scenario.leader, order)):
+                if self._opens(scenario, joint):
+                    return joint
+                if k == 0 and self._path(scenario) is None:  # no path at all: nothing else will open one
+                    return None
+            return None
         if self.order == "lockstep" and self.config.n_followers <= 2:  # one search finds every first move
             found = shortest_first_moves(scenario, config=self._capped_config(self._limit(scenario)))
             if found is None:
@@ -78,6 +87,18 @@ class Teacher:
                 if joint == planned or self._opens(scenario, joint, max_steps=len(path) - 1):
                     return joint
         return planned
+
+    def _closer_first(self, leader: tuple[int, int], order: list[tuple[int, ...]]) -> list[tuple[int, ...]]:
+        """``order`` with the joint actions that lower the leader's steps to go first (stable)."""
+        (row, col), (dest_row, dest_col) = leader, self.config.destination
+
+        def to_go(move: int) -> int:
+            r = min(max(row + int(MOVES[move, 0]), 0), self.config.height - 1)
+            c = min(max(col + int(MOVES[move, 1]), 0), self.config.width - 1)
+            return max(r - dest_row, abs(c - dest_col))
+
+        now = max(row - dest_row, abs(col - dest_col))
+        return sorted(order, key=lambda joint: to_go(joint[0]) >= now)
 
     def _nearest_obstacles(self, scenario: Scenario) -> list[int]:
         """Indices of the ``ROBUST_OBSTACLES`` obstacles whose rows are nearest the leader's."""
