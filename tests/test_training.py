@@ -56,6 +56,19 @@ def test_replay_ratio_holds_and_the_driver_never_receives_transitions(cluster, a
         algo.stop()
 
 
+def test_prioritized_replay_gets_the_learners_priorities(cluster):
+    """New records enter at the largest priority so far, 1 at the start; only priorities sent back
+    by the learner (TD error, plus the weighted margin loss) can raise it."""
+    run, algo = build(1, prioritized=True, margin=5.0, learning_starts=500)
+    try:
+        train_until(algo, 1500)
+        assert algo.counters["updates"] > 0
+        stats = algo.replay_stats()
+        assert max(s["replay_max_priority"] for s in stats) > 1.5, stats
+    finally:
+        algo.stop()
+
+
 def test_train_writes_a_checkpoint_and_resume_continues(cluster, tmp_path):
     from formation.train import train
 

@@ -116,9 +116,12 @@ class FrameReplay:
         return min(self.added, self.capacity)
 
     def stats(self) -> dict[str, float]:
-        return {"replay_records": self.size, "replay_added": self.added,
-                "replay_fill": self.size / self.capacity, "replay_bytes": self.nbytes,
-                "replay_bytes_per_record": self.nbytes / self.capacity}
+        out = {"replay_records": self.size, "replay_added": self.added,
+               "replay_fill": self.size / self.capacity, "replay_bytes": self.nbytes,
+               "replay_bytes_per_record": self.nbytes / self.capacity}
+        if self._priority is not None:
+            out["replay_max_priority"] = self._max_priority
+        return out
 
     @property
     def nbytes(self) -> int:
