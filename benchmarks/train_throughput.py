@@ -26,7 +26,8 @@ from formation.learn.config import RunConfig  # noqa: E402
 
 BASE = {"game": {"setting": 1, "obs_type": "pixels", "frame_stack": 4},
         # the paper's reward and plain epsilon-greedy on both paths: RLlib's stock DQN has no teacher
-        "train": {"shaping": 0.0, "demonstrations": 0.0, "margin": 0.0, "dagger": False, "exploration": "independent",
+        "train": {"shaping": 0.0, "demonstrations": 0.0, "margin": 0.0, "dagger": False, "prioritized": False,
+                  "exploration": "independent",
                   "learning_starts": 1000, "replay_ratio": 0.125, "batch_size": 32,
                   "replay_capacity": 20_000, "total_env_steps": 10**9},
         "resources": {"num_rollout_actors": 1, "games_per_actor": 8, "cpus_per_rollout_actor": 0.5},

@@ -115,7 +115,7 @@ def test_asking_for_more_than_the_cluster_has_fails_fast(cluster, tmp_path):
 def test_the_stock_rllib_path_trains_both_policies_on_the_papers_reward(cluster):
     import torch
 
-    run, algo = build(1, path="stock", shaping=0.0, demonstrations=0.0, margin=0.0, dagger=False,
+    run, algo = build(1, path="stock", shaping=0.0, demonstrations=0.0, margin=0.0, dagger=False, prioritized=False,
                       exploration="independent", replay_ratio=0.25, learning_starts=200)
     try:
         before = {m: [p.detach().clone() for p in module.parameters()] for m, module in algo.local_modules().items()}

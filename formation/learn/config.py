@@ -61,7 +61,7 @@ class TrainSettings:
     # DAgger labels of an episode's first step (no motion on screen yet): keep a path for the most obstacle
     # velocities instead of the clairvoyant planner's choice
     robust_first_step: bool = True
-    prioritized: bool = False
+    prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True
     hidden: int = 128
     channels: tuple[int, int, int] = (16, 32, 32)
