@@ -37,10 +37,10 @@ class Teacher:
     joint actions that start a shortest path (often 8 of the 16), the first in ``lockstep_order``, so
     that labels follow one simple rule. ``order="safe"``: the first joint action in ``lockstep_order``,
     those that bring the leader closer first, after which a path is left (forward unless that dooms
-    the team), a rule that depends mostly on the obstacles nearby. ``robust_first_step``: on an episode's first step, whose
-    screens do not show the obstacles' motion yet, the first joint action in ``lockstep_order``
-    after which a path is left for the most velocities of the obstacles nearest the agents, instead
-    of the clairvoyant one.
+    the team), a rule that depends mostly on the obstacles nearby. ``robust_first_step``: on an
+    episode's first step, whose screens do not show the obstacles' motion yet, the first joint
+    action in ``lockstep_order`` after which a path is left for the most velocities of the
+    obstacles nearest the agents, instead of the clairvoyant one.
     Paths count up to the lower bound + ``slack`` steps; a state with none gets no label (None).
     """
 
