@@ -41,6 +41,10 @@ def test_yaml_and_dotted_overrides(tmp_path):
     ({"game": {"setting": 9}}, "game.setting"),
     ({"game": {"d_min": 4}}, "game.d_min"),
     ({"game": {"obs_type": "rgb"}}, "game.obs_type"),
+    ({"train": {"label_order": "random"}}, "train.label_order"),
+    ({"train": {"robust_first_step": "yes"}}, "train.robust_first_step"),
+    ({"train": {"path": "stock"}}, "train.path"),  # the default recipe is not RLlib's stock DQN
+    ({"eval": {"episodes": 2, "gif_episodes": 3}}, "eval.gif_episodes"),
 ])
 def test_bad_values_name_the_key(values, names):
     assert one_line_error(values).startswith(names)
