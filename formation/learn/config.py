@@ -48,15 +48,16 @@ class TrainSettings:
     exploration: str = "joint"
     shaping: float = 1.0  # weight of potential-based shaping; 0 = the paper's reward alone
     potential: str = "distance"  # none | distance | planner (see formation.learn.shaping)
-    planner_slack: int = 6  # planner potential: paths longer than the lower bound + slack count as lost
+    planner_slack: int = 6  # planner potential and teacher: paths longer than the lower bound + slack count as lost
     steps_per_sample: int = 8  # steps of all of an actor's games per push to the replay
     demonstrations: float = 0.5  # fraction of games played by the clairvoyant planner (the teacher)
     margin: float = 5.0  # DQfD large-margin loss weight towards the teacher's actions (labels)
     dagger: bool = True  # label every visited state with the teacher's joint action (DAgger)
-    # label_order and robust_first_step shape the labels; they do nothing when dagger is false
-    # which shortest-path first action labels a state: the planner's own pick ("planner") or the first in a
-    # fixed order ("lockstep": everyone the same move first, then forward, sideways towards the
-    # destination, away, stay); a state has ~8 optimal joint actions, so the order makes labels learnable
+    # label_order and robust_first_step shape the labels (formation.learn.teacher); they do nothing when
+    # dagger is false. Which action labels a state: the planner's own first action ("planner"); of those
+    # that start a shortest path (often ~8), the first in a fixed order ("lockstep": everyone the same
+    # move first, then forward, sideways towards the destination, away, stay); or the first in that
+    # order, moves bringing the leader closer first, that leaves any path within the slack ("safe")
     label_order: str = "lockstep"
     # DAgger labels of an episode's first step (no motion on screen yet): keep a path for the most obstacle
     # velocities instead of the clairvoyant planner's choice
