@@ -182,17 +182,12 @@ class _ObstacleFuture:
 def _search(board: _Board, zones: np.ndarray, start: tuple, deadline: int) -> list[tuple[int, ...]] | None:
     """Breadth-first search over time layers for a success within ``deadline`` steps."""
     n_agents = len(start)
-    n_joint = N_ACTIONS ** n_agents
     layer = np.array([[r * board.width + c for r, c in start]], dtype=np.int32)  # (states, agents)
     parents: list[np.ndarray] = []  # per layer t >= 1: index of each state's parent in layer t-1
     joint_actions: list[np.ndarray] = []  # and the joint action that led there
     dedupe = _Deduplicator(board, n_agents)
     for t in range(deadline):
-        landing, allowed = _expand(board, layer, zones[t + 1], deadline - t - 1)
-        moves = np.flatnonzero(allowed)
-        parent, joint = np.divmod(moves, n_joint)
-        actions = [(joint // N_ACTIONS ** (n_agents - 1 - i)) % N_ACTIONS for i in range(n_agents)]
-        cells = np.stack([landing[parent, i, a] for i, a in enumerate(actions)], axis=1)
+        parent, joint, cells = _successors(board, layer, zones[t + 1], deadline - t - 1)
         success = np.flatnonzero(cells[:, 0] == board.destination)
         if len(success):
             first = success[0]
@@ -210,17 +205,11 @@ def _search_first_moves(board: _Board, zones: np.ndarray, start: tuple, deadline
     """``_search`` that keeps, for every state of a layer, the set of first joint actions of the
     paths reaching it (a bit mask, merged over duplicates): ``(length, mask)`` of the first
     layer with a success, the mask over all successes in it."""
-    n_agents = len(start)
-    n_joint = N_ACTIONS ** n_agents
     layer = np.array([[r * board.width + c for r, c in start]], dtype=np.int32)
     firsts = None  # per state of the layer: mask of first joint actions (None at the start)
-    dedupe = _Deduplicator(board, n_agents)
+    dedupe = _Deduplicator(board, len(start))
     for t in range(deadline):
-        landing, allowed = _expand(board, layer, zones[t + 1], deadline - t - 1)
-        moves = np.flatnonzero(allowed)
-        parent, joint = np.divmod(moves, n_joint)
-        actions = [(joint // N_ACTIONS ** (n_agents - 1 - i)) % N_ACTIONS for i in range(n_agents)]
-        cells = np.stack([landing[parent, i, a] for i, a in enumerate(actions)], axis=1)
+        parent, joint, cells = _successors(board, layer, zones[t + 1], deadline - t - 1)
         carried = (np.uint64(1) << joint.astype(np.uint64)) if firsts is None else firsts[parent]
         success = cells[:, 0] == board.destination
         if success.any():
@@ -235,6 +224,17 @@ def _search_first_moves(board: _Board, zones: np.ndarray, start: tuple, deadline
         keep[inverse] = np.arange(len(cells))  # one copy of each state (any: they are equal)
         layer = cells[keep]
     return None
+
+
+def _successors(board: _Board, layer: np.ndarray, zone: np.ndarray, steps_left: int):
+    """Every allowed move from ``layer``: the parent state's index, the joint action, and the
+    cells the agents land on, ``(moves, agents)``."""
+    n_agents = layer.shape[1]
+    landing, allowed = _expand(board, layer, zone, steps_left)
+    parent, joint = np.divmod(np.flatnonzero(allowed), N_ACTIONS ** n_agents)
+    actions = [(joint // N_ACTIONS ** (n_agents - 1 - i)) % N_ACTIONS for i in range(n_agents)]
+    cells = np.stack([landing[parent, i, a] for i, a in enumerate(actions)], axis=1)
+    return parent, joint, cells
 
 
 def _expand(board: _Board, layer: np.ndarray, zone: np.ndarray, steps_left: int):
