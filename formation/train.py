@@ -141,7 +141,7 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         signal.signal(signal.SIGTERM, _raise_stop)
     except BaseException as err:
         signal.signal(signal.SIGTERM, previous_handler)
-        if isinstance(err, KeyboardInterrupt | Stop):
+        if isinstance(err, KeyboardInterrupt):  # Ctrl-C, or SIGTERM (Stop)
             print("\nstopped before training began; nothing to save", file=sys.stderr)
         raise
 
@@ -169,9 +169,8 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         final = algo.play_greedy(record=run.eval.gif_episodes)
         summary = algo.last_eval = final["summary"]
         save_checkpoint(algo, out_dir)
-        if final["screens"]:
-            gif = write_episodes_gif(out_dir / "greedy.gif", final["screens"])
-    except (KeyboardInterrupt, Stop):
+        gif = write_episodes_gif(out_dir / "greedy.gif", final["screens"]) if final["screens"] else None
+    except KeyboardInterrupt:  # Ctrl-C, or SIGTERM (Stop)
         save_checkpoint(algo, out_dir)
         print(f"\nstopped: checkpoint saved in {checkpoint_path(out_dir)}; continue with --resume", file=sys.stderr)
         raise
@@ -186,7 +185,7 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         progress.show(algo.counters["env_steps"], summary["success"], 0.0, final=True)
         print(f"greedy success {summary['success']:.1%} on {summary['episodes']} held-out scenarios; "
               f"run folder {out_dir}")
-        if run.eval.gif_episodes:
+        if gif is not None:
             print(f"greedy episodes: {gif}")
     return summary
 

@@ -51,7 +51,7 @@ class FormationLearner(DQNTorchLearner):
         self._module_of_agent = list(module_of_agent)
         self._prefetch = None
         self._turn = 0
-        self._td: dict[str, np.ndarray] = {}
+        self._priority: dict[str, np.ndarray] = {}
         self.num_updates = getattr(self, "num_updates", 0)
         return True
 
@@ -76,7 +76,7 @@ class FormationLearner(DQNTorchLearner):
                 loss = loss + config.margin * large_margin[taught].mean()
                 # prioritized replay also revisits the states where the module disagrees with the teacher
                 priority = priority + config.margin * (large_margin.detach() * taught)
-        self._td[module_id] = priority.cpu().numpy()
+        self._priority[module_id] = priority.cpu().numpy()
         self.metrics.log_value((module_id, "q_mean"), q_taken.detach().mean(), window=1)
         self.metrics.log_value((module_id, "td_abs_mean"), td.detach().abs().mean(), window=1)
         return loss
@@ -103,7 +103,7 @@ class FormationLearner(DQNTorchLearner):
                         _no_metrics_reduce=True)
             self.num_updates += 1
             if cfg.prioritized:
-                priority = np.stack([self._td[m].reshape(-1, n).max(0) for m in batches]).max(0)
+                priority = np.stack([self._priority[m].reshape(-1, n).max(0) for m in batches]).max(0)
                 replay.update_priorities.remote(sample["ids"], priority)
         return self.metrics.reduce()
 

@@ -90,8 +90,8 @@ class RolloutActor(EnvRunner, Checkpointable):
         self._demo_games = int(round(run.train.demonstrations * games))
         self._plans: dict[int, list] = {}
         self._teacher = Teacher(run.game, t.planner_slack, t.label_order, t.robust_first_step) if t.dagger else None
-        self._demos_follow_labels = t.dagger and (t.label_order != "planner" or t.robust_first_step)
-        for i in range(0 if self._demos_follow_labels else self._demo_games):
+        # with DAgger labels, demonstration games follow them; without, the planner's path from the start
+        for i in range(0 if t.dagger else self._demo_games):
             self._plan(i)
 
     def make_module(self) -> None:
@@ -143,14 +143,14 @@ class RolloutActor(EnvRunner, Checkpointable):
         for _ in range(run.train.steps_per_sample):
             actions = self._actions(rollout.observations)
             labels = self._planner_labels() if run.train.dagger else np.full(actions.shape, -1, np.int8)
-            for i in range(self._demo_games):  # demonstration games follow the planner's path
-                if self._demos_follow_labels:  # ... or the teacher's labels where these differ from it
+            for i in range(self._demo_games):  # demonstration games follow the teacher
+                if run.train.dagger:
                     actions[i] = np.where(labels[i] >= 0, labels[i], actions[i])
                 elif self._plans[i]:
                     actions[i] = labels[i] = self._plans[i].pop(0)
             chunks.append(rollout.step(actions, labels=labels))
-            for i in np.flatnonzero(rollout.game.steps[: self._demo_games] == 0):
-                if not self._demos_follow_labels:
+            if not run.train.dagger:
+                for i in np.flatnonzero(rollout.game.steps[: self._demo_games] == 0):
                     self._plan(int(i))
         records = concatenate(chunks)
         steps = rollout.batch_size * run.train.steps_per_sample
