@@ -26,3 +26,44 @@ def test_followers_sharing_a_policy_each_contribute_their_own_rows():
     # the shared screen and the discount repeat for every follower
     assert follower["obs"][:, 0, 0, 0].tolist() == [0, 1, 2, 0, 1, 2]
     np.testing.assert_allclose(follower[DISCOUNTS], [0.9, 0.0, 0.81, 0.9, 0.0, 0.81])
+
+
+def test_threaded_module_updates_equal_rllibs_serial_update():
+    """On a CPU the learner updates its modules in parallel threads; the weights after an update must
+    be those of RLlib's serial update on the same batch."""
+    import torch
+    from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
+
+    from formation.learn.algorithm import build_algorithm_config
+    from formation.learn.config import RunConfig
+    from formation.learn.rollout_actor import module_of_agent, spaces_of
+
+    run = RunConfig.load("configs/smoke.yaml")
+    config = build_algorithm_config(run)
+    spaces = {m: spaces_of(run) for m in set(module_of_agent(run))}
+    rng = np.random.default_rng(0)
+    n, shape = 16, spaces["leader"][0].shape
+    sample = {"obs": rng.integers(0, 2, (n, *shape), dtype=np.uint8),
+              "next_obs": rng.integers(0, 2, (n, *shape), dtype=np.uint8),
+              "actions": rng.integers(0, 4, (n, 2)), "returns": rng.normal(size=(n, 2)).astype(np.float32),
+              "discounts": np.full(n, 0.9, np.float32), "labels": rng.integers(-1, 4, (n, 2)),
+              "weights": np.ones(n, np.float32)}
+    weights = {}
+    for threaded in (True, False):
+        torch.manual_seed(0)
+        learner = config.build_learner(spaces=spaces)
+        learner.module_threads = threaded
+        learner.set_replays([], module_of_agent(run))
+        batch = MultiAgentBatch({m: SampleBatch(b) for m, b in module_batches(sample, module_of_agent(run)).items()},
+                                env_steps=n)
+        learner.update(batch=batch, timesteps={"num_env_steps_sampled_lifetime": 0})
+        assert (learner._threads is not None) == threaded  # the path under test was taken
+        weights[threaded] = {m: {k: v.clone() for k, v in learner.module[m].state_dict().items()}
+                             for m in ("leader", "follower")}
+    torch.manual_seed(0)
+    before = config.build_learner(spaces=spaces)
+    for m in ("leader", "follower"):
+        for key, value in weights[True][m].items():
+            torch.testing.assert_close(value, weights[False][m][key])
+        moved = [k for k, v in weights[True][m].items() if not torch.equal(v, before.module[m].state_dict()[k])]
+        assert any("q_network" in k for k in moved), m  # the update did change the weights

@@ -2,7 +2,7 @@
 
 import torch
 
-from formation.learn.qnet import DuelingQNetwork, double_q_target, dueling
+from formation.learn.qnet import DuelingQNetwork, double_q_target, dueling, large_margin
 
 
 def test_dueling_aggregation_by_hand():
@@ -21,6 +21,16 @@ def test_double_q_target_by_hand():
     # the online net picks actions 1, 0, 3; the target net values them 20, 8, 100
     y = double_q_target(returns, discounts, online, target)
     assert torch.allclose(y, torch.tensor([1.0 + 0.5 * 20, 2.0 + 0.25 * 8, 3.0]))
+
+
+def test_large_margin_by_hand():
+    q = torch.tensor([[1.0, 4.0, 2.0, 0.0], [3.0, 1.0, 0.0, 0.0], [2.0, 1.5, 0.0, 0.0]])
+    labels = torch.tensor([0, 0, 0])
+    # row 1: another action is 3 above the label's, plus the gap 5; row 2: the label leads by 2, less
+    # than the gap, so 5 - 2 remains; row 3: the label leads by 0.5
+    assert torch.allclose(large_margin(q, labels, 5.0), torch.tensor([3.0 + 5.0, 3.0, 4.5]))
+    # a label that leads by more than the gap costs nothing
+    assert torch.allclose(large_margin(q, labels, 0.8), torch.tensor([3.8, 0.0, 0.3]))
 
 
 def test_network_takes_uint8_screens_and_grids():

@@ -76,6 +76,10 @@ class FormationDQNConfig(DQNConfig):
         return self.run.train.margin
 
     @property
+    def margin_gap(self) -> float:
+        return self.run.train.margin_gap
+
+    @property
     def prioritized(self) -> bool:
         return self.run.train.prioritized
 

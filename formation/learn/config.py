@@ -52,6 +52,7 @@ class TrainSettings:
     steps_per_sample: int = 8  # steps of all of an actor's games per push to the replay
     demonstrations: float = 0.5  # fraction of games played by the clairvoyant planner (the teacher)
     margin: float = 5.0  # DQfD large-margin loss weight towards the teacher's actions (labels)
+    margin_gap: float = 0.8  # DQfD's l(a_E, a): how far above every other action the teacher's Q must stand
     dagger: bool = True  # label every visited state with the teacher's joint action (DAgger)
     # label_order and robust_first_step shape the labels (formation.learn.teacher); they do nothing when
     # dagger is false. Which action labels a state: the planner's own first action ("planner"); of those
@@ -81,6 +82,7 @@ class TrainSettings:
         _number(self, "shaping", 0.0, math.inf)
         _number(self, "demonstrations", 0.0, 1.0)
         _number(self, "margin", 0.0, math.inf)
+        _number(self, "margin_gap", 0.0, math.inf)
         _number(self, "grad_clip", 0.0, math.inf, low_open=True)
         if self.potential not in POTENTIALS:
             raise ConfigError(f"train.potential: {self.potential!r} is not allowed; allowed: {', '.join(POTENTIALS)}")

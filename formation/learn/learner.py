@@ -2,11 +2,13 @@
 
 It runs inside RLlib's LearnerGroup (a Ray actor, on a GPU when the config asks), so batches go
 replay actor -> learner without passing the driver. The next batch is requested before the
-current one is used (prefetch), so the learner rarely waits on the replay.
+current one is used (prefetch), so the learner rarely waits on the replay. On a CPU the modules
+(leader, follower) update in parallel threads, one core each.
 """
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -19,9 +21,9 @@ from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from formation.learn.qnet import double_q_target
+from formation.learn.qnet import large_margin as large_margin_loss
 
 RETURNS, DISCOUNTS, LABELS, WEIGHTS = "n_step_returns", "n_step_discounts", "teacher_labels", "weights"
-MARGIN = 0.8  # DQfD's margin between the teacher's action and any other
 
 
 def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str]) -> dict[str, dict[str, np.ndarray]]:
@@ -45,6 +47,34 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str]) ->
 
 class FormationLearner(DQNTorchLearner):
     _replays: list = []
+    _threads: ThreadPoolExecutor | None = None
+    module_threads = True  # False: RLlib's serial update (the same arithmetic, one module after the other)
+
+    def _uncompiled_update(self, batch: dict, **kwargs):
+        """RLlib's update, but on a CPU each module's forward and backward pass runs in its own thread:
+        the modules share no parameters, and torch's kernels release the GIL, so two modules train on
+        two cores at once. Gradients are then clipped and applied as RLlib does."""
+        modules = list(batch.keys())
+        if not self.module_threads or len(modules) < 2 or self._device is None or self._device.type != "cpu":
+            return super()._uncompiled_update(batch, **kwargs)
+        if self._threads is None:
+            self._threads = ThreadPoolExecutor(len(modules), thread_name_prefix="module-update")
+        self._compute_off_policyness(batch)
+        for optim in self._optimizer_parameters:
+            optim.zero_grad(set_to_none=True)
+
+        def forward_backward(module_id: str):
+            fwd_out = self.module[module_id].forward_train(batch[module_id])
+            config = self.config.get_config_for_module(module_id)
+            loss = self.compute_loss_for_module(module_id=module_id, config=config, batch=batch[module_id],
+                                                fwd_out=fwd_out)
+            loss.backward()
+            return fwd_out, loss
+
+        results = dict(zip(modules, self._threads.map(forward_backward, modules)))
+        gradients = {pid: p.grad for pid, p in self._params.items() if p.grad is not None}
+        self.apply_gradients(self.postprocess_gradients(gradients))
+        return {m: r[0] for m, r in results.items()}, {m: r[1] for m, r in results.items()}, {}
 
     def set_replays(self, handles: list, module_of_agent: list[str]) -> bool:
         self._replays = list(handles)
@@ -52,6 +82,7 @@ class FormationLearner(DQNTorchLearner):
         self._prefetch = None
         self._turn = 0
         self._priority: dict[str, np.ndarray] = {}
+        self._stats: dict[str, dict[str, float]] = {}
         self.num_updates = getattr(self, "num_updates", 0)
         return True
 
@@ -70,15 +101,14 @@ class FormationLearner(DQNTorchLearner):
             taught = labels >= 0
             if taught.any():
                 # DQfD: J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), a_E the teacher's (planner's) action
-                a_e = labels.clamp(min=0).unsqueeze(1)
-                margins = torch.full_like(q, MARGIN).scatter(1, a_e, 0.0)
-                large_margin = (q + margins).max(1).values - q.gather(1, a_e).squeeze(1)
+                large_margin = large_margin_loss(q, labels.clamp(min=0), config.margin_gap)
                 loss = loss + config.margin * large_margin[taught].mean()
                 # prioritized replay also revisits the states where the module disagrees with the teacher
                 priority = priority + config.margin * (large_margin.detach() * taught)
         self._priority[module_id] = priority.cpu().numpy()
-        self.metrics.log_value((module_id, "q_mean"), q_taken.detach().mean(), window=1)
-        self.metrics.log_value((module_id, "td_abs_mean"), td.detach().abs().mean(), window=1)
+        # logged by pull_and_update, in one thread (RLlib's metrics logger is not thread-safe)
+        self._stats[module_id] = {"q_mean": q_taken.detach().mean().item(),
+                                  "td_abs_mean": td.detach().abs().mean().item()}
         return loss
 
     def _request(self, batch_size: int, n_step: int, gamma: float):
@@ -102,6 +132,9 @@ class FormationLearner(DQNTorchLearner):
             self.update(batch=batch, timesteps={NUM_ENV_STEPS_SAMPLED_LIFETIME: self.num_updates},
                         _no_metrics_reduce=True)
             self.num_updates += 1
+            for module_id, stats in self._stats.items():
+                for key, value in stats.items():
+                    self.metrics.log_value((module_id, key), value, window=1)
             if cfg.prioritized:
                 priority = np.stack([self._priority[m].reshape(-1, n).max(0) for m in batches]).max(0)
                 replay.update_priorities.remote(sample["ids"], priority)

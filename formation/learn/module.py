@@ -61,5 +61,7 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
 
     def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
         obs, next_obs = batch[Columns.OBS], batch[Columns.NEXT_OBS]
-        q, q_next = torch.chunk(self.q_network(torch.cat([obs, next_obs])), 2)
-        return {QF_PREDS: q, QF_NEXT_PREDS: q_next, QF_TARGET_NEXT_PREDS: self._target_q_network(next_obs)}
+        q = self.q_network(obs)
+        with torch.no_grad():  # targets only: no backward pass through the next observations
+            q_next, q_target_next = self.q_network(next_obs), self._target_q_network(next_obs)
+        return {QF_PREDS: q, QF_NEXT_PREDS: q_next, QF_TARGET_NEXT_PREDS: q_target_next}

@@ -39,6 +39,14 @@ def double_q_target(returns: torch.Tensor, discounts: torch.Tensor, q_next_onlin
     return returns + discounts * q_next_target.gather(1, best).squeeze(1)
 
 
+def large_margin(q: torch.Tensor, labels: torch.Tensor, gap: float) -> torch.Tensor:
+    """DQfD's J_E(Q) = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), l = ``gap`` for a != a_E, 0 for a_E
+    (Hester et al. 2018, eq. 2), per row; ``labels`` are the teacher's actions a_E (all >= 0)."""
+    a_e = labels.long().unsqueeze(1)
+    margins = torch.full_like(q, gap).scatter(1, a_e, 0.0)
+    return (q + margins).max(1).values - q.gather(1, a_e).squeeze(1)
+
+
 class DuelingQNetwork(nn.Module):
     """uint8 observations -> Q-values of the four actions."""
 
