@@ -52,7 +52,7 @@ class TrainSettings:
     steps_per_sample: int = 8  # steps of all of an actor's games per push to the replay
     demonstrations: float = 0.5  # fraction of games played by the clairvoyant planner (the teacher)
     margin: float = 5.0  # DQfD large-margin loss weight towards the teacher's actions (labels)
-    margin_gap: float = 0.8  # DQfD's l(a_E, a): how far above every other action the teacher's Q must stand
+    margin_gap: float = 5.0  # DQfD's l(a_E, a): how far above every other action the teacher's Q must stand
     dagger: bool = True  # label every visited state with the teacher's joint action (DAgger)
     # label_order and robust_first_step shape the labels (formation.learn.teacher); they do nothing when
     # dagger is false. Which action labels a state: the planner's own first action ("planner"); of those

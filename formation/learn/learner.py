@@ -35,13 +35,16 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str]) ->
     out = {}
     for module, agents in rows.items():
         copies = len(agents)
-        out[module] = {Columns.OBS: np.concatenate([sample["obs"]] * copies),
-                       Columns.NEXT_OBS: np.concatenate([sample["next_obs"]] * copies),
+
+        def repeat(a: np.ndarray, copies: int = copies) -> np.ndarray:  # one module, one agent: no copy
+            return a if copies == 1 else np.concatenate([a] * copies)
+
+        out[module] = {Columns.OBS: repeat(sample["obs"]), Columns.NEXT_OBS: repeat(sample["next_obs"]),
                        Columns.ACTIONS: np.concatenate([sample["actions"][:, a] for a in agents]),
                        RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
-                       DISCOUNTS: np.concatenate([sample["discounts"]] * copies),
+                       DISCOUNTS: repeat(sample["discounts"]),
                        LABELS: np.concatenate([sample["labels"][:, a] for a in agents]),
-                       WEIGHTS: np.concatenate([sample["weights"]] * copies)}
+                       WEIGHTS: repeat(sample["weights"])}
     return out
 
 

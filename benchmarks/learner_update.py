@@ -1,0 +1,76 @@
+"""Learner update cost: one double-DQN update of both modules (leader and follower), in plain torch.
+
+    .venv/bin/python benchmarks/learner_update.py [--updates 40]
+
+For setting 1 from grid observations (2 stacked frames, batch 64: the quickstart) and from pixels
+(4 stacked screens, batch 32: the throughput benchmark), prints milliseconds per update with the
+modules one after the other (RLlib's order) and in two threads at once (``FormationLearner`` on a
+CPU). Each torch op runs on one thread, as in the learner's Ray actor. No Ray: the data path's
+own cost is the difference to ``benchmarks/train_throughput.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import torch
+
+from formation.config import GameConfig
+from formation.game import BatchedGame, Observer
+from formation.learn.qnet import DuelingQNetwork, double_q_target
+
+
+def ms_per_update(shape: tuple[int, int, int], batch: int, threads: int, updates: int) -> float:
+    nets = [DuelingQNetwork(shape) for _ in range(2)]
+    targets = [copy.deepcopy(net) for net in nets]
+    optimizers = [torch.optim.Adam(net.parameters(), 1e-3) for net in nets]
+    obs = torch.randint(0, 2, (batch, *shape), dtype=torch.uint8)
+    next_obs = torch.randint(0, 2, (batch, *shape), dtype=torch.uint8)
+    actions, returns, discounts = torch.randint(0, 4, (batch, 1)), torch.randn(batch), torch.full((batch,), 0.9)
+
+    def update(i: int) -> None:
+        q = nets[i](obs).gather(1, actions).squeeze(1)
+        with torch.no_grad():
+            y = double_q_target(returns, discounts, nets[i](next_obs), targets[i](next_obs))
+        optimizers[i].zero_grad()
+        torch.nn.functional.smooth_l1_loss(q, y).backward()
+        torch.nn.utils.clip_grad_norm_(nets[i].parameters(), 10.0)
+        optimizers[i].step()
+
+    pool = ThreadPoolExecutor(2)
+
+    def both() -> None:
+        if threads == 1:
+            update(0)
+            update(1)
+        else:
+            list(pool.map(update, [0, 1]))
+
+    for _ in range(5):
+        both()
+    start = time.perf_counter()
+    for _ in range(updates):
+        both()
+    return (time.perf_counter() - start) / updates * 1000
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--updates", type=int, default=40)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    print(f"{'observation':<28} {'batch':>5} {'one after the other':>20} {'two threads':>12} {'speed-up':>9}")
+    for obs_type, stack, batch in (("grid", 2, 64), ("pixels", 4, 32)):
+        config = GameConfig.from_setting(1, obs_type=obs_type, frame_stack=stack)
+        shape = Observer(BatchedGame(config, batch_size=1)).shape
+        serial = ms_per_update(shape, batch, 1, args.updates)
+        threaded = ms_per_update(shape, batch, 2, args.updates)
+        print(f"{obs_type + ' ' + 'x'.join(map(str, shape)):<28} {batch:>5} {serial:>17.1f} ms {threaded:>9.1f} ms "
+              f"{serial / threaded:>8.2f}x")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,86 @@
+"""Where a trained team goes wrong: play its greedy policy on the run's held-out scenarios and
+compare every action with the teacher's label for the same state.
+
+    .venv/bin/python experiments/teacher_agreement.py runs/s1_prio [--episodes 200]
+
+Prints how often each module's action equals the label, and for every outcome (success, leader
+or follower collision, formation break, time-out) which agent first left the teacher's joint
+action ("leader", "follower", "both", or "never") and at which step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+from pathlib import Path
+
+import numpy as np
+import torch
+from ray.rllib.core.rl_module.rl_module import RLModule
+
+from formation.game import BatchedGame, Observer
+from formation.learn.config import RunConfig
+from formation.learn.rollout_actor import module_of_agent
+from formation.learn.teacher import Teacher
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="a run folder of `formation train` (config.yaml, checkpoint/)")
+    parser.add_argument("--episodes", type=int, default=200)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    run = RunConfig.load(args.run / "config.yaml")
+    modules_dir = (args.run / "checkpoint" / "learner_group" / "learner" / "rl_module").resolve()
+    names = module_of_agent(run)
+    modules = {m: RLModule.from_checkpoint(str(modules_dir / m)) for m in sorted(set(names))}
+    t = run.train
+    teacher = Teacher(run.game, t.planner_slack, t.label_order, t.robust_first_step)
+    n = args.episodes
+    game = BatchedGame(run.game, batch_size=n, seed=run.eval.seed)
+    game.reset()
+    observer = Observer(game)
+    obs = observer.observe(np.ones(n, bool))
+    live = np.ones(n, bool)
+    agree, labelled = collections.Counter(), 0
+    first_off: dict[int, tuple[int, str]] = {}
+    outcome: dict[int, str] = {}
+    while live.any():
+        x = torch.from_numpy(obs)
+        with torch.no_grad():
+            greedy = {m: module.q_network(x).argmax(1).numpy() for m, module in modules.items()}
+        actions = np.stack([greedy[m] for m in names], axis=1)
+        for i in np.flatnonzero(live):
+            label = teacher.label(game.scenario(i), first_step=game.steps[i] == 0)
+            if label is None:
+                continue
+            labelled += 1
+            same = actions[i] == np.asarray(label)
+            for agent, name in enumerate(run.game.agent_names):
+                agree[name] += bool(same[agent])
+            agree["team"] += bool(same.all())
+            if not same.all() and i not in first_off:
+                who = "both" if not same.any() else "leader" if not same[0] else "follower"
+                first_off[i] = (int(game.steps[i]), who)
+        actions[~live] = 3
+        game.step(actions)
+        for i in np.flatnonzero(live & game.done):
+            outcome[i] = ("success" if game.success[i] else "leader collision" if game.collided[i, 0]
+                          else "follower collision" if game.collided[i, 1:].any()
+                          else "formation break" if not game.formation_kept[i] else "time-out")
+        live &= ~game.done
+        obs = observer.observe(np.zeros(n, bool))
+    print(f"{labelled} labelled states; the action equals the teacher's label:",
+          ", ".join(f"{k} {v / labelled:.1%}" for k, v in agree.items()))
+    table = collections.defaultdict(list)
+    for i, end in outcome.items():
+        step, who = first_off.get(i, (None, "never"))
+        table[(end, who)].append(step)
+    print(f"{'outcome':<20} {'first off the label':<20} {'episodes':>8}  steps of the first departure")
+    for (end, who), steps in sorted(table.items()):
+        shown = sorted(s for s in steps if s is not None)
+        print(f"{end:<20} {who:<20} {len(steps):>8}  {shown if shown else ''}")
+
+
+if __name__ == "__main__":
+    main()
