@@ -3,9 +3,9 @@ compare every action with the teacher's label for the same state.
 
     .venv/bin/python experiments/teacher_agreement.py runs/s1_prio [--episodes 200]
 
-Prints how often each module's action equals the label, and for every outcome (success, leader
-or follower collision, formation break, time-out) which agent first left the teacher's joint
-action ("leader", "follower", "both", or "never") and at which step.
+Prints how often each module's action equals the label, which moves replace which labels, and for
+every outcome (success, leader or follower collision, formation break, time-out) which agent first
+left the teacher's joint action ("leader", "follower", "both", or "never") and at which step.
 """
 
 from __future__ import annotations
@@ -22,6 +22,8 @@ from formation.game import BatchedGame, Observer
 from formation.learn.config import RunConfig
 from formation.learn.rollout_actor import module_of_agent
 from formation.learn.teacher import Teacher
+
+MOVE_NAMES = ("F", "FL", "FR", "S")  # the spec's action names, by index
 
 
 def main() -> None:
@@ -43,6 +45,7 @@ def main() -> None:
     obs = observer.observe(np.ones(n, bool))
     live = np.ones(n, bool)
     agree, labelled = collections.Counter(), 0
+    confusion = {name: collections.Counter() for name in run.game.agent_names}  # (label, action) when they differ
     first_off: dict[int, tuple[int, str]] = {}
     outcome: dict[int, str] = {}
     while live.any():
@@ -58,6 +61,8 @@ def main() -> None:
             same = actions[i] == np.asarray(label)
             for agent, name in enumerate(run.game.agent_names):
                 agree[name] += bool(same[agent])
+                if not same[agent]:
+                    confusion[name][(MOVE_NAMES[label[agent]], MOVE_NAMES[actions[i, agent]])] += 1
             agree["team"] += bool(same.all())
             if not same.all() and i not in first_off:
                 who = "both" if not same.any() else "leader" if not same[0] else "follower"
@@ -72,6 +77,9 @@ def main() -> None:
         obs = observer.observe(np.zeros(n, bool))
     print(f"{labelled} labelled states; the action equals the teacher's label:",
           ", ".join(f"{k} {v / labelled:.1%}" for k, v in agree.items()))
+    for name, pairs in confusion.items():
+        swaps = ", ".join(f"{label} -> {action}: {n}" for (label, action), n in pairs.most_common())
+        print(f"{name}'s departures (label -> action): {swaps}")
     table = collections.defaultdict(list)
     for i, end in outcome.items():
         step, who = first_off.get(i, (None, "never"))

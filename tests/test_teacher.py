@@ -9,7 +9,7 @@ import pytest
 from formation.config import GameConfig
 from formation.game import BatchedGame
 from formation.learn.teacher import Teacher, lockstep_order
-from formation.planner import shortest_path
+from formation.planner import shortest_first_moves, shortest_path
 
 SMALL = GameConfig.from_setting(None, height=9, width=9, n_obstacles=1)
 
@@ -40,6 +40,20 @@ def test_lockstep_order_lists_every_joint_action_once_lockstep_first(n_agents, t
     assert sorted(order) == sorted(itertools.product(range(4), repeat=n_agents))
     assert order[:4] == [(m,) * n_agents for m in (0, toward, 3 - toward, 3)]
     assert order[4][0] == 0  # then the leader's forward move first
+
+
+def test_toward_first_order_ranks_the_move_towards_the_destination_before_forward():
+    order = lockstep_order(2, 2, toward_first=True)
+    assert sorted(order) == sorted(itertools.product(range(4), repeat=2))
+    assert order[:4] == [(2, 2), (0, 0), (1, 1), (3, 3)]
+    toward, lockstep = Teacher(SMALL, slack=200, order="toward"), Teacher(SMALL, slack=200, order="lockstep")
+    both = 0
+    for scenario in scenarios(SMALL, range(30)):  # the spec's start: left of the destination's column
+        found = shortest_first_moves(scenario, config=SMALL)
+        if found is not None and {(0, 0), (2, 2)} <= set(found[1]):  # straight on and right both optimal
+            both += 1
+            assert lockstep.label(scenario) == (0, 0) and toward.label(scenario) == (2, 2)
+    assert both >= 5
 
 
 def test_planner_order_labels_with_the_planners_first_action():

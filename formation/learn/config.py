@@ -25,7 +25,7 @@ from formation.learn.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
 EXPLORATIONS = ("independent", "joint")
-LABEL_ORDERS = ("planner", "lockstep", "safe")
+LABEL_ORDERS = ("planner", "lockstep", "toward", "safe")
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,8 @@ class TrainSettings:
     # label_order and robust_first_step shape the labels (formation.learn.teacher); they do nothing when
     # dagger is false. Which action labels a state: the planner's own first action ("planner"); of those
     # that start a shortest path (often ~8), the first in a fixed order ("lockstep": everyone the same
-    # move first, then forward, sideways towards the destination, away, stay); or the first in that
+    # move first, then forward, sideways towards the destination, away, stay; "toward": the same with
+    # sideways towards the destination's column before forward); or the first in the lockstep
     # order, moves bringing the leader closer first, that leaves any path within the slack ("safe")
     label_order: str = "lockstep"
     # DAgger labels of an episode's first step (no motion on screen yet): keep a path for the most obstacle

@@ -23,10 +23,11 @@ from formation.planner import lower_bound, shortest_first_moves, shortest_path
 ROBUST_OBSTACLES = 2
 
 
-def lockstep_order(n_agents: int, toward: int) -> list[tuple[int, ...]]:
+def lockstep_order(n_agents: int, toward: int, toward_first: bool = False) -> list[tuple[int, ...]]:
     """Every joint action, lockstep ones (all agents the same move) first, then by each agent's move,
-    leader first: forward, sideways ``toward`` the destination (1 = FL or 2 = FR), the other way, stay."""
-    rank = {0: 0, toward: 1, 3 - toward: 2, 3: 3}
+    leader first: forward, sideways ``toward`` the destination (1 = FL or 2 = FR), the other way, stay;
+    with ``toward_first``, the sideways move towards the destination before forward."""
+    rank = {toward: 0, 0: 1, 3 - toward: 2, 3: 3} if toward_first else {0: 0, toward: 1, 3 - toward: 2, 3: 3}
     return sorted(itertools.product(range(4), repeat=n_agents), key=lambda a: (len(set(a)) > 1, [rank[m] for m in a]))
 
 
@@ -35,7 +36,8 @@ class Teacher:
 
     ``order="planner"``: the first action of the planner's shortest path. ``order="lockstep"``: of the
     joint actions that start a shortest path (often 8 of the 16), the first in ``lockstep_order``, so
-    that labels follow one simple rule. ``order="safe"``: the first joint action in ``lockstep_order``,
+    that labels follow one simple rule; ``order="toward"``: the same with the sideways move towards the
+destination's column ranked before forward. ``order="safe"``: the first joint action in ``lockstep_order``,
     those that bring the leader closer first, after which a path is left (forward unless that dooms
     the team), a rule that depends mostly on the obstacles nearby. ``robust_first_step``: on an
     episode's first step, whose screens do not show the obstacles' motion yet, the first joint
@@ -50,7 +52,9 @@ class Teacher:
         self._capped: dict[int, GameConfig] = {}
         self._robust_labels: dict[tuple, tuple[int, ...] | None] = {}
         destination, agents = config.destination[1], 1 + config.n_followers
-        self._orders = [lockstep_order(agents, 2 if col < destination else 1) for col in range(config.width)]
+        # "toward": the team heads for the destination's column first (below the obstacles), then forward
+        self._orders = [lockstep_order(agents, 2 if col < destination else 1, order == "toward" and col != destination)
+                        for col in range(config.width)]
         speeds = [sign * speed for speed in config.obstacle_speeds for sign in (1, -1)]
         self._velocities = list(itertools.product(speeds, repeat=min(ROBUST_OBSTACLES, config.n_obstacles)))
 
@@ -72,7 +76,7 @@ class Teacher:
                 if k == 0 and self._path(scenario) is None:  # no path at all: nothing else will open one
                     return None
             return None
-        if self.order == "lockstep" and self.config.n_followers <= 2:  # one search finds every first move
+        if self.order in ("lockstep", "toward") and self.config.n_followers <= 2:  # one search finds every first move
             found = shortest_first_moves(scenario, config=self._capped_config(self._limit(scenario)))
             if found is None:
                 return None
@@ -82,7 +86,7 @@ class Teacher:
         if path is None:
             return None
         planned = tuple(int(a) for a in path[0])
-        if self.order == "lockstep":
+        if self.order in ("lockstep", "toward"):
             for joint in order:
                 if joint == planned or self._opens(scenario, joint, max_steps=len(path) - 1):
                     return joint
