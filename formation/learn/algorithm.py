@@ -278,12 +278,14 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
     # -- one training step
     def training_step(self) -> None:
         t, c = self.run.train, self.counters
-        owed = t.replay_ratio * c["env_steps"] - c["updates"]
-        updates_per_call = max(1, min(64, int(round(t.replay_ratio * t.steps_per_sample
-                                                    * self.run.resources.games_per_actor))))
+        steps_per_request = t.steps_per_sample * self.run.resources.games_per_actor
+        updates_per_call = max(1, min(64, int(round(t.replay_ratio * steps_per_request))))
         learning = self._learning_ready()
-        # Sampling runs ahead of the learner by at most a few calls, so the ratio holds.
-        if not learning or owed < 4 * updates_per_call:
+        # Sampling runs ahead of the learner by at most one call of updates plus one request per
+        # actor, counting the steps of requests still in flight, so the ratio holds at any load.
+        in_flight = self.env_runner_group.num_in_flight_async_reqs(tag="sample") * steps_per_request
+        owed_ahead = t.replay_ratio * (c["env_steps"] + in_flight) - c["updates"]
+        if not learning or owed_ahead < updates_per_call:
             self.env_runner_group.foreach_env_runner_async("sample", tag="sample")
         for _, result in self.env_runner_group.fetch_ready_async_reqs(tags="sample", timeout_seconds=0.01):
             c["env_steps"] += result["env_steps"]
