@@ -37,8 +37,8 @@ class Teacher:
     ``order="planner"``: the first action of the planner's shortest path. ``order="lockstep"``: of the
     joint actions that start a shortest path (often 8 of the 16), the first in ``lockstep_order``, so
     that labels follow one simple rule; ``order="toward"``: the same with the sideways move towards the
-destination's column ranked before forward. ``order="safe"``: the first joint action in ``lockstep_order``,
-    those that bring the leader closer first, after which a path is left (forward unless that dooms
+    destination's column ranked before forward. ``order="safe"``: the first joint action in
+    ``lockstep_order``, those that bring the leader closer first, after which a path is left (forward unless that dooms
     the team), a rule that depends mostly on the obstacles nearby. ``robust_first_step``: on an
     episode's first step, whose screens do not show the obstacles' motion yet, the first joint
     action in ``lockstep_order`` after which a path is left for the most velocities of the
