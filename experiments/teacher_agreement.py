@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from ray.rllib.core.rl_module.rl_module import RLModule
 
-from formation.game import BatchedGame, Observer
+from formation.evaluate import play_greedy
 from formation.learn.config import RunConfig
 from formation.learn.rollout_actor import module_of_agent
 from formation.learn.teacher import Teacher
@@ -38,21 +38,17 @@ def main() -> None:
     modules = {m: RLModule.from_checkpoint(str(modules_dir / m)) for m in sorted(set(names))}
     t = run.train
     teacher = Teacher(run.game, t.planner_slack, t.label_order, t.robust_first_step)
-    n = args.episodes
-    game = BatchedGame(run.game, batch_size=n, seed=run.eval.seed)
-    game.reset()
-    observer = Observer(game)
-    obs = observer.observe(np.ones(n, bool))
-    live = np.ones(n, bool)
     agree, labelled = collections.Counter(), 0
     confusion = {name: collections.Counter() for name in run.game.agent_names}  # (label, action) when they differ
     first_off: dict[int, tuple[int, str]] = {}
-    outcome: dict[int, str] = {}
-    while live.any():
-        x = torch.from_numpy(obs)
+
+    def act(obs: np.ndarray) -> np.ndarray:
         with torch.no_grad():
-            greedy = {m: module.q_network(x).argmax(1).numpy() for m, module in modules.items()}
-        actions = np.stack([greedy[m] for m in names], axis=1)
+            greedy = {m: module.q_network(torch.from_numpy(obs)).argmax(1).numpy() for m, module in modules.items()}
+        return np.stack([greedy[m] for m in names], axis=1)
+
+    def compare(game, actions: np.ndarray, live: np.ndarray) -> None:
+        nonlocal labelled
         for i in np.flatnonzero(live):
             label = teacher.label(game.scenario(i), first_step=game.steps[i] == 0)
             if label is None:
@@ -67,14 +63,11 @@ def main() -> None:
             if not same.all() and i not in first_off:
                 who = "both" if not same.any() else "leader" if not same[0] else "follower"
                 first_off[i] = (int(game.steps[i]), who)
-        actions[~live] = 3
-        game.step(actions)
-        for i in np.flatnonzero(live & game.done):
-            outcome[i] = ("success" if game.success[i] else "leader collision" if game.collided[i, 0]
-                          else "follower collision" if game.collided[i, 1:].any()
-                          else "formation break" if not game.formation_kept[i] else "time-out")
-        live &= ~game.done
-        obs = observer.observe(np.zeros(n, bool))
+
+    played = play_greedy(run.game, act, args.episodes, run.eval.seed, watch=compare)
+    outcome = {i: ("success" if played["success"][i] else "leader collision" if played["leader_collided"][i]
+                   else "follower collision" if played["follower_collided"][i]
+                   else "formation break" if played["broken"][i] else "time-out") for i in range(args.episodes)}
     print(f"{labelled} labelled states; the action equals the teacher's label:",
           ", ".join(f"{k} {v / labelled:.1%}" for k, v in agree.items()))
     for name, pairs in confusion.items():

@@ -27,10 +27,11 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
 
 
 def play_greedy(config: GameConfig, act: Callable[[np.ndarray], np.ndarray], episodes: int, seed: int,
-                record: int = 0) -> dict:
+                record: int = 0, watch: Callable[[BatchedGame, np.ndarray, np.ndarray], None] | None = None) -> dict:
     """Play ``episodes`` episodes at once; per-episode outcomes and summary rates. ``record`` > 0 also
     returns the screens of the first ``record`` episodes (``"screens"``: one list of frames each, from
-    the start to the episode's last step)."""
+    the start to the episode's last step). ``watch(game, actions, live)``, if given, sees every step's
+    state and actions before the step is played (the live games are those still playing)."""
     game = BatchedGame(config, batch_size=episodes, seed=seed)
     game.reset()
     renderer = ScreenRenderer(game) if record else None
@@ -55,6 +56,8 @@ def play_greedy(config: GameConfig, act: Callable[[np.ndarray], np.ndarray], epi
     while live.any():
         actions = np.asarray(act(obs))
         actions[~live] = 3  # finished games stand still; nothing of theirs is counted
+        if watch is not None:
+            watch(game, actions, live)
         game.step(actions)
         snapshot(live)  # the step's outcome: a finished game shows how it ended
         returns[live] += game.rewards[live]

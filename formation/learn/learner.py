@@ -34,18 +34,19 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str]) ->
         rows.setdefault(module, []).append(agent)
     out = {}
     for module, agents in rows.items():
-        copies = len(agents)
-
-        def repeat(a: np.ndarray, copies: int = copies) -> np.ndarray:  # one module, one agent: no copy
-            return a if copies == 1 else np.concatenate([a] * copies)
-
-        out[module] = {Columns.OBS: repeat(sample["obs"]), Columns.NEXT_OBS: repeat(sample["next_obs"]),
+        shared = {key: _repeat(sample[key], len(agents)) for key in ("obs", "next_obs", "discounts", "weights")}
+        out[module] = {Columns.OBS: shared["obs"], Columns.NEXT_OBS: shared["next_obs"],
                        Columns.ACTIONS: np.concatenate([sample["actions"][:, a] for a in agents]),
                        RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
-                       DISCOUNTS: repeat(sample["discounts"]),
+                       DISCOUNTS: shared["discounts"],
                        LABELS: np.concatenate([sample["labels"][:, a] for a in agents]),
-                       WEIGHTS: repeat(sample["weights"])}
+                       WEIGHTS: shared["weights"]}
     return out
+
+
+def _repeat(a: np.ndarray, copies: int) -> np.ndarray:
+    """``a`` once per agent of a module; the array itself (no copy) for a module of one agent."""
+    return a if copies == 1 else np.concatenate([a] * copies)
 
 
 class FormationLearner(DQNTorchLearner):

@@ -21,6 +21,7 @@ from formation.planner import lower_bound, shortest_first_moves, shortest_path
 # robust first-step labels try every velocity of this many obstacles, those nearest the leader's row;
 # the others count as known (4 velocities each: trying all 3 of setting 1 costs 64 planner calls a label)
 ROBUST_OBSTACLES = 2
+SHORTEST_PATH_ORDERS = ("lockstep", "toward")  # orders that label with a move starting a shortest path
 
 
 def lockstep_order(n_agents: int, toward: int, toward_first: bool = False) -> list[tuple[int, ...]]:
@@ -76,7 +77,7 @@ class Teacher:
                 if k == 0 and self._path(scenario) is None:  # no path at all: nothing else will open one
                     return None
             return None
-        if self.order in ("lockstep", "toward") and self.config.n_followers <= 2:  # one search finds every first move
+        if self.order in SHORTEST_PATH_ORDERS and self.config.n_followers <= 2:  # one search finds every first move
             found = shortest_first_moves(scenario, config=self._capped_config(self._limit(scenario)))
             if found is None:
                 return None
@@ -86,7 +87,7 @@ class Teacher:
         if path is None:
             return None
         planned = tuple(int(a) for a in path[0])
-        if self.order in ("lockstep", "toward"):
+        if self.order in SHORTEST_PATH_ORDERS:
             for joint in order:
                 if joint == planned or self._opens(scenario, joint, max_steps=len(path) - 1):
                     return joint
