@@ -2,7 +2,7 @@
 
 import torch
 
-from formation.learn.qnet import DuelingQNetwork, double_q_target, dueling, large_margin
+from formation.learn.qnet import DuelingQNetwork, LeaderWindow, double_q_target, dueling, large_margin
 
 
 def test_dueling_aggregation_by_hand():
@@ -41,3 +41,55 @@ def test_network_takes_uint8_screens_and_grids():
         assert q.shape == (5, 4) and q.dtype == torch.float32
         # normalisation: a screen scaled to the other range gives other values
         assert not torch.allclose(net(obs), net(obs // 2))
+
+
+def test_leader_window_moves_the_leader_to_a_fixed_place_on_grids():
+    # one frame of the grid planes (destination, obstacles, followers, leader), stacked twice
+    h, w = 7, 9
+    frame = torch.zeros(2, h, w, 4, dtype=torch.uint8)
+    frame[0, 0, 4, 0] = 1  # destination
+    frame[0, 3, 4, 1] = 1  # an obstacle
+    frame[0, 3, 6, 1] = 1  # another, outside the window
+    frame[0, 5, 2, 3] = 1  # the leader at (5, 2) ...
+    frame[0, 5, 0, 2] = 1  # ... its follower two columns left
+    frame[1, 0, 0, 3] = 1  # the second game's leader in the top-left corner
+    older = torch.zeros_like(frame)
+    older[0, 6, 2, 3] = 1  # the leader one row lower in the older frame (it moved forward)
+    obs = torch.cat([older, frame], dim=3)
+    window = LeaderWindow((h, w, 8), (3, 1, 2), frame_channels=4, screens=False)
+    crop = window(obs, obs.float())
+    assert crop.shape == (2, 3 + 1 + 1, 2 * 2 + 1, 9) == (2, *window.out_shape)
+    up, side = 3, 2
+    expected = torch.zeros(2, 5, 5, 9)
+    expected[0, up, side, 7] = 1  # the leader, newest frame
+    expected[0, up + 1, side, 3] = 1  # the leader in the older frame, one row below
+    expected[0, up, side - 2, 6] = 1  # the follower
+    expected[0, up - 2, side + 2, 5] = 1  # the obstacle at (3, 4): 2 rows up, 2 columns right
+    expected[0, :, :, 8] = 1  # rows 2..6 and columns 0..4 of the board are all on it
+    expected[1, up:, side:, 8] = 1  # the corner: only the lower right quarter is board
+    expected[1, up, side, 7] = 1
+    assert torch.equal(crop, expected)  # the destination (0, 4) is 5 rows up: outside
+
+
+def test_leader_window_finds_the_leader_on_rendered_screens():
+    from formation.config import GameConfig
+    from formation.game import BatchedGame, Observer
+    from formation.learn.algorithm import leader_window_config
+    from formation.learn.config import RunConfig
+
+    run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "pixels", "frame_stack": 2},
+                               "train": {"leader_window": [2, 1, 3]}})
+    cfg = leader_window_config(run, (84, 84, 6))
+    # 3.36 pixels a cell: 2 cells above, 1 below and 3 either side, plus the leader's own cell
+    assert cfg == {"window": [7, 7, 14], "frame_channels": 3}
+    game = BatchedGame(GameConfig.from_setting(1, obs_type="pixels", frame_stack=2), 4, seed=3)
+    game.reset()
+    obs = torch.from_numpy(Observer(game).observe(torch.ones(4, dtype=torch.bool).numpy()).copy())
+    net = DuelingQNetwork((84, 84, 6), 255, window=tuple(cfg["window"]), frame_channels=3)
+    crop = net.window(obs, obs.float())
+    up, side = cfg["window"][0], cfg["window"][2]
+    # every game's window has the leader's blue top-left pixel at (up, side), the block's top-left
+    assert torch.equal(crop[:, up, side, 3:6], torch.tensor([[0.0, 0.0, 255.0]] * 4))
+    assert torch.equal(crop[:, up - 1, side, 3:6], torch.zeros(4, 3))
+    assert torch.equal(crop[:, up, side - 1, 3:6], torch.zeros(4, 3))
+    assert net(obs).shape == (4, 4)

@@ -44,6 +44,8 @@ def test_yaml_and_dotted_overrides(tmp_path):
     ({"train": {"label_order": "random"}}, "train.label_order"),
     ({"train": {"robust_first_step": "yes"}}, "train.robust_first_step"),
     ({"train": {"margin_gap": -1}}, "train.margin_gap"),
+    ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),
+    ({"train": {"leader_window": [1, 2, -3]}}, "train.leader_window"),
     ({"train": {"path": "stock"}}, "train.path"),  # the default recipe is not RLlib's stock DQN
     ({"eval": {"episodes": 2, "gif_episodes": 3}}, "eval.gif_episodes"),
 ])

@@ -12,8 +12,10 @@ policy (``leader``, ``follower`` or ``follower_i``) in a MultiRLModuleSpec, mapp
 
 from __future__ import annotations
 
+import math
 import pickle
 import time
+from typing import Any
 
 import numpy as np
 import ray
@@ -32,6 +34,7 @@ from ray.rllib.utils.metrics import (
 )
 
 from formation.evaluate import play_greedy
+from formation.game.render import GRID_PLANES
 from formation.learn.config import RunConfig
 from formation.learn.learner import FormationLearner
 from formation.learn.module import DuelingQModule
@@ -89,10 +92,26 @@ def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLMo
     t = run.train
     obs_space, act_space = spaces_of(run)
     model_config = {"hidden": t.hidden, "channels": list(t.channels),
-                    "epsilon": [(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)]}
+                    "epsilon": [(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)],
+                    **leader_window_config(run, obs_space.shape)}
     return {m: RLModuleSpec(module_class=DuelingQModule, observation_space=obs_space, action_space=act_space,
                             model_config=dict(model_config), inference_only=inference_only)
             for m in sorted(set(module_of_agent(run)))}
+
+
+def leader_window_config(run: RunConfig, obs_shape: tuple[int, ...]) -> dict[str, Any]:
+    """``train.leader_window`` (in cells) as the module's ``window`` (in entries of the observation:
+    cells of a grid, pixels of a screen) and ``frame_channels``; empty without a window."""
+    window = run.train.leader_window
+    if window is None:
+        return {}
+    up, down, side = window
+    if run.game.obs_type == "grid":
+        return {"window": [up, down, side], "frame_channels": len(GRID_PLANES)}
+    rows, cols = obs_shape[0] / run.game.height, obs_shape[1] / run.game.width  # pixels per cell
+    # the leader's block of pixels starts at its top-left pixel: the window reaches one cell further down and right
+    return {"window": [math.ceil(up * rows), math.ceil((down + 1) * rows), math.ceil((side + 1) * cols)],
+            "frame_channels": 3}
 
 
 class StockFormationDQNConfig(DQNConfig):

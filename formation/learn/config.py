@@ -68,6 +68,9 @@ class TrainSettings:
     followers_share_policy: bool = True
     hidden: int = 128
     channels: tuple[int, int, int] = (16, 32, 32)
+    # the Q-networks look through a window that follows the leader: cells above it, below it, and either
+    # side (formation.learn.qnet.LeaderWindow); null: the whole screen, as the paper's networks
+    leader_window: tuple[int, int, int] | None = None
     grad_clip: float = 10.0
     total_env_steps: int = 300_000
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
@@ -108,6 +111,11 @@ class TrainSettings:
                                      or self.prioritized or self.dagger):
             raise ConfigError("train.path: stock runs RLlib's DQN on the paper's reward alone; "
                               "set train.shaping: 0, demonstrations: 0, margin: 0, prioritized: false, dagger: false")
+        if self.leader_window is not None and (
+                not isinstance(self.leader_window, tuple) or len(self.leader_window) != 3
+                or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in self.leader_window)):
+            raise ConfigError(f"train.leader_window: {self.leader_window!r} is not allowed; "
+                              "allowed: null or three integers >= 0 (cells above, below, either side)")
         if len(self.channels) != 3 or not all(isinstance(c, int) and c >= 1 for c in self.channels):
             raise ConfigError(f"train.channels: {list(self.channels)!r} is not allowed; allowed: three integers >= 1")
 

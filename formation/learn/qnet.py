@@ -3,6 +3,11 @@
 Observations arrive as uint8 ``(N, H, W, C)`` (C = frame channels x stack) and are normalised
 here. The encoders are sized for CPUs: the pixel encoder's first layer reads non-overlapping
 4x4 patches, so a forward pass costs about 2.4 MMAC per sample instead of the Nature DQN's 10.
+
+With a ``LeaderWindow`` the network first shifts every frame of the stack so that the leader sits
+at a fixed place and keeps a window around it (the board's edge marked by a plane of its own):
+what is near the leader then lands on the same inputs wherever the team is, and a rule learnt in
+one place holds in every other (docs/TRAINING.md measures what that is worth).
 """
 
 from __future__ import annotations
@@ -13,10 +18,11 @@ from torch import nn
 N_ACTIONS = 4
 
 
-def encoder(obs_shape: tuple[int, int, int], channels: tuple[int, int, int] = (16, 32, 32)) -> nn.Sequential:
+def encoder(obs_shape: tuple[int, int, int], channels: tuple[int, int, int] = (16, 32, 32),
+            screens: bool | None = None) -> nn.Sequential:
     h, w, c = obs_shape
     c1, c2, c3 = channels
-    if min(h, w) >= 64:  # screens: 84x84 -> 21 -> 11 -> 6
+    if screens if screens is not None else min(h, w) >= 64:  # screens: 84x84 -> 21 -> 11 -> 6
         first = nn.Conv2d(c, c1, kernel_size=4, stride=4)
     else:  # grids: one cell per entry, keep full resolution in the first layer
         first = nn.Conv2d(c, c1, kernel_size=3, stride=1, padding=1)
@@ -47,20 +53,73 @@ def large_margin(q: torch.Tensor, labels: torch.Tensor, gap: float) -> torch.Ten
     return (q + margins).max(1).values - q.gather(1, a_e).squeeze(1)
 
 
+class LeaderWindow(nn.Module):
+    """``(N, H, W, C)`` frame stacks -> ``(N, up + 1 + down, 2 * side + 1, C + 1)``: every frame shifted
+    so that the leader's top-left entry in the newest frame sits at row ``up``, column ``side``;
+    entries outside the board are 0, and the extra last plane is 1 on the board.
+
+    The leader is found in the newest frame (the last ``frame_channels`` channels): on a grid its
+    own plane (the frame's last), on a screen its colour, pure blue (drawn last, so never hidden).
+    """
+
+    def __init__(self, obs_shape: tuple[int, int, int], window: tuple[int, int, int], frame_channels: int,
+                 screens: bool):
+        super().__init__()
+        self.h, self.w, self.c = obs_shape
+        self.up, self.down, self.side = window
+        self.frame_channels, self.screens = frame_channels, screens
+        self.out_shape = (self.up + 1 + self.down, 2 * self.side + 1, self.c + 1)
+        self.register_buffer("rows", torch.arange(self.out_shape[0]), persistent=False)
+        self.register_buffer("cols", torch.arange(self.out_shape[1]), persistent=False)
+
+    def leader_mask(self, obs: torch.Tensor) -> torch.Tensor:
+        """(N, H, W) bool: the leader's entries in the newest frame of uint8 observations."""
+        if not self.screens:
+            return obs[..., -1] > 0
+        red, green, blue = obs[..., -3], obs[..., -2], obs[..., -1]
+        return (blue > 127) & (red < 128) & (green < 128)
+
+    def forward(self, obs: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``obs``: the uint8 observations (to find the leader); ``x``: the same as floats (to crop)."""
+        n = obs.shape[0]
+        where = self.leader_mask(obs).reshape(n, -1).float().argmax(1)  # row-major: the top-left entry
+        row, col = where // self.w, where % self.w
+        board = torch.ones_like(x[..., :1])
+        padded = nn.functional.pad(torch.cat([x, board], dim=3), (0, 0, self.side, self.side, self.up, self.down))
+        rows = (row[:, None] + self.rows)[:, :, None]  # padded row of window row i: row - up + i + up
+        cols = (col[:, None] + self.cols)[:, None, :]
+        return padded[torch.arange(n, device=x.device)[:, None, None], rows, cols]
+
+
 class DuelingQNetwork(nn.Module):
-    """uint8 observations -> Q-values of the four actions."""
+    """uint8 observations -> Q-values of the four actions.
+
+    ``window`` (rows above, rows below, columns either side of the leader, in entries of the
+    observation): look through a ``LeaderWindow`` first; None: the whole observation as it is.
+    ``frame_channels``: channels of one frame of the stack (3 for screens, 4 for grids)."""
 
     def __init__(self, obs_shape: tuple[int, int, int], high: float = 255.0, hidden: int = 128,
-                 channels: tuple[int, int, int] = (16, 32, 32)):
+                 channels: tuple[int, int, int] = (16, 32, 32), window: tuple[int, int, int] | None = None,
+                 frame_channels: int | None = None):
         super().__init__()
         self.obs_shape = tuple(obs_shape)
+        screens = min(obs_shape[:2]) >= 64
         self.register_buffer("scale", torch.tensor(1.0 / high), persistent=False)
-        self.encoder = encoder(self.obs_shape, channels)
+        self.window = None
+        seen = self.obs_shape
+        if window is not None:
+            frame_channels = frame_channels or (3 if screens else 4)
+            self.window = LeaderWindow(self.obs_shape, tuple(window), frame_channels, screens)
+            seen = self.window.out_shape
+        self.encoder = encoder(seen, channels, screens)
         with torch.no_grad():
-            n = self.encoder(torch.zeros(1, obs_shape[2], obs_shape[0], obs_shape[1])).shape[1]
+            n = self.encoder(torch.zeros(1, seen[2], seen[0], seen[1])).shape[1]
         self.value = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, 1))
         self.advantage = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, N_ACTIONS))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        x = self.encoder(obs.permute(0, 3, 1, 2).float() * self.scale)
+        x = obs.float() * self.scale
+        if self.window is not None:
+            x = self.window(obs, x)
+        x = self.encoder(x.permute(0, 3, 1, 2))
         return dueling(self.value(x), self.advantage(x))
