@@ -5,8 +5,10 @@
 For setting 1 from grid observations (2 stacked frames, batch 64: the quickstart) and from pixels
 (4 stacked screens, batch 32: the throughput benchmark), prints milliseconds per update with the
 modules one after the other (RLlib's order) and in two threads at once (``FormationLearner`` on a
-CPU). Each torch op runs on one thread, as in the learner's Ray actor. No Ray: the data path's
-own cost is the difference to ``benchmarks/train_throughput.py``.
+CPU); each with the whole observation and the widths of configs/paper.yaml, and with the default
+recipe's network (a leader window, wider layers). Each torch op runs on one thread, as in the
+learner's Ray actor. No Ray: the data path's own cost is the difference to
+``benchmarks/train_throughput.py``.
 """
 
 from __future__ import annotations
@@ -18,13 +20,14 @@ from concurrent.futures import ThreadPoolExecutor
 
 import torch
 
-from formation.config import GameConfig
 from formation.game import BatchedGame, Observer
+from formation.learn.algorithm import leader_window_config
+from formation.learn.config import RunConfig
 from formation.learn.qnet import DuelingQNetwork, double_q_target
 
 
-def ms_per_update(shape: tuple[int, int, int], batch: int, threads: int, updates: int) -> float:
-    nets = [DuelingQNetwork(shape) for _ in range(2)]
+def ms_per_update(shape: tuple[int, int, int], batch: int, threads: int, updates: int, window: dict) -> float:
+    nets = [DuelingQNetwork(shape, **window) for _ in range(2)]
     targets = [copy.deepcopy(net) for net in nets]
     optimizers = [torch.optim.Adam(net.parameters(), 1e-3) for net in nets]
     obs = torch.randint(0, 2, (batch, *shape), dtype=torch.uint8)
@@ -64,12 +67,16 @@ def main() -> None:
     torch.set_num_threads(1)
     print(f"{'observation':<28} {'batch':>5} {'one after the other':>20} {'two threads':>12} {'speed-up':>9}")
     for obs_type, stack, batch in (("grid", 2, 64), ("pixels", 4, 32)):
-        config = GameConfig.from_setting(1, obs_type=obs_type, frame_stack=stack)
-        shape = Observer(BatchedGame(config, batch_size=1)).shape
-        serial = ms_per_update(shape, batch, 1, args.updates)
-        threaded = ms_per_update(shape, batch, 2, args.updates)
-        print(f"{obs_type + ' ' + 'x'.join(map(str, shape)):<28} {batch:>5} {serial:>17.1f} ms {threaded:>9.1f} ms "
-              f"{serial / threaded:>8.2f}x")
+        run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": obs_type, "frame_stack": stack}})
+        shape = Observer(BatchedGame(run.game, batch_size=1)).shape
+        widths = {"channels": run.train.channels, "hidden": run.train.hidden}  # the default recipe's
+        small = {"channels": (16, 32, 32), "hidden": 128}  # configs/paper.yaml's
+        for name, window in (("", small), (", window", {**widths, **leader_window_config(run, shape)})):
+            window = {k: tuple(v) if isinstance(v, list) else v for k, v in window.items()}
+            serial = ms_per_update(shape, batch, 1, args.updates, window)
+            threaded = ms_per_update(shape, batch, 2, args.updates, window)
+            print(f"{obs_type + ' ' + 'x'.join(map(str, shape)) + name:<28} {batch:>5} {serial:>17.1f} ms "
+                  f"{threaded:>9.1f} ms {serial / threaded:>8.2f}x")
 
 
 if __name__ == "__main__":

@@ -57,7 +57,7 @@ def test_leader_window_moves_the_leader_to_a_fixed_place_on_grids():
     older[0, 6, 2, 3] = 1  # the leader one row lower in the older frame (it moved forward)
     obs = torch.cat([older, frame], dim=3)
     window = LeaderWindow((h, w, 8), (3, 1, 2), frame_channels=4, screens=False)
-    crop = window(obs, obs.float())
+    crop = window(obs)
     assert crop.shape == (2, 3 + 1 + 1, 2 * 2 + 1, 9) == (2, *window.out_shape)
     up, side = 3, 2
     expected = torch.zeros(2, 5, 5, 9)
@@ -86,7 +86,7 @@ def test_leader_window_finds_the_leader_on_rendered_screens():
     game.reset()
     obs = torch.from_numpy(Observer(game).observe(torch.ones(4, dtype=torch.bool).numpy()).copy())
     net = DuelingQNetwork((84, 84, 6), 255, window=tuple(cfg["window"]), frame_channels=3)
-    crop = net.window(obs, obs.float())
+    crop = net.window(obs)
     up, side = cfg["window"][0], cfg["window"][2]
     # every game's window has the leader's blue top-left pixel at (up, side), the block's top-left
     assert torch.equal(crop[:, up, side, 3:6], torch.tensor([[0.0, 0.0, 255.0]] * 4))

@@ -79,6 +79,7 @@ def test_paper_config_is_the_papers_table_2():
         32, 50000, 0.99, 1e-4, 1.0, 0.1)
     assert t.shaping == 0 and paper.game.obs_type == "pixels" and paper.game.frame_stack == 4
     # none of our recipe: no teacher, each agent explores on its own, one-step targets
+    assert t.leader_window is None  # the paper's networks see the whole screen
     assert (t.dagger, t.demonstrations, t.margin, t.exploration, t.n_step, t.prioritized) == (
         False, 0, 0, "independent", 1, False)
     assert paper.game.max_steps == 200 and paper.game.reward_reach == 50

@@ -66,11 +66,11 @@ class TrainSettings:
     robust_first_step: bool = True
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True
-    hidden: int = 128
-    channels: tuple[int, int, int] = (16, 32, 32)
+    hidden: int = 256
+    channels: tuple[int, int, int] = (32, 64, 64)
     # the Q-networks look through a window that follows the leader: cells above it, below it, and either
     # side (formation.learn.qnet.LeaderWindow); null: the whole screen, as the paper's networks
-    leader_window: tuple[int, int, int] | None = None
+    leader_window: tuple[int, int, int] | None = (12, 3, 10)
     grad_clip: float = 10.0
     total_env_steps: int = 300_000
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors

@@ -69,6 +69,7 @@ class LeaderWindow(nn.Module):
         self.up, self.down, self.side = window
         self.frame_channels, self.screens = frame_channels, screens
         self.out_shape = (self.up + 1 + self.down, 2 * self.side + 1, self.c + 1)
+        # window row i is board row (leader's row - up + i); column j, board column (leader's - side + j)
         self.register_buffer("rows", torch.arange(self.out_shape[0]), persistent=False)
         self.register_buffer("cols", torch.arange(self.out_shape[1]), persistent=False)
 
@@ -79,16 +80,18 @@ class LeaderWindow(nn.Module):
         red, green, blue = obs[..., -3], obs[..., -2], obs[..., -1]
         return (blue > 127) & (red < 128) & (green < 128)
 
-    def forward(self, obs: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        """``obs``: the uint8 observations (to find the leader); ``x``: the same as floats (to crop)."""
-        n = obs.shape[0]
+    def forward(self, obs: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+        """uint8 observations -> the window as floats: the observation's entries times ``scale``, and the
+        board plane (1 on the board, 0 off it) last."""
+        n, h, w, c = obs.shape
         where = self.leader_mask(obs).reshape(n, -1).float().argmax(1)  # row-major: the top-left entry
-        row, col = where // self.w, where % self.w
-        board = torch.ones_like(x[..., :1])
-        padded = nn.functional.pad(torch.cat([x, board], dim=3), (0, 0, self.side, self.side, self.up, self.down))
-        rows = (row[:, None] + self.rows)[:, :, None]  # padded row of window row i: row - up + i + up
-        cols = (col[:, None] + self.cols)[:, None, :]
-        return padded[torch.arange(n, device=x.device)[:, None, None], rows, cols]
+        rows = (where // w)[:, None] - self.up + self.rows  # (n, window rows): rows of the board
+        cols = (where % w)[:, None] - self.side + self.cols
+        board = ((rows >= 0) & (rows < h))[:, :, None] & ((cols >= 0) & (cols < w))[:, None, :]
+        flat = rows.clamp(0, h - 1)[:, :, None] * w + cols.clamp(0, w - 1)[:, None, :]
+        crop = obs.reshape(n, h * w, c).gather(1, flat.reshape(n, -1, 1).expand(-1, -1, c))
+        crop = crop.reshape(n, *self.out_shape[:2], c).float() * (board[..., None] * scale)
+        return torch.cat([crop, board[..., None].float()], dim=3)
 
 
 class DuelingQNetwork(nn.Module):
@@ -118,8 +121,6 @@ class DuelingQNetwork(nn.Module):
         self.advantage = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, N_ACTIONS))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        x = obs.float() * self.scale
-        if self.window is not None:
-            x = self.window(obs, x)
+        x = obs.float() * self.scale if self.window is None else self.window(obs, self.scale)
         x = self.encoder(x.permute(0, 3, 1, 2))
         return dueling(self.value(x), self.advantage(x))
