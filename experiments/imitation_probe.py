@@ -1,7 +1,8 @@
 """Diagnostic: how well can a Q-network's encoder imitate the teacher's labels, offline?
 
-    .venv/bin/python experiments/imitation_probe.py collect --states 60000 --out /tmp/probe.npz
-    .venv/bin/python experiments/imitation_probe.py fit /tmp/probe.npz --net flat [--iterations 6000]
+    .venv/bin/python experiments/imitation_probe.py collect --states 50000 --seed 11 --out /tmp/probe_11.npz
+    .venv/bin/python experiments/imitation_probe.py collect --states 50000 --seed 12 --out /tmp/probe_12.npz
+    .venv/bin/python experiments/imitation_probe.py fit /tmp/probe_1[12].npz --net flat [--iterations 8000]
 
 ``collect`` plays setting-1 games (grid observations, 2 stacked frames) that follow the teacher's
 joint label except, with probability ``--explore`` per step, a random joint move (so states off the
@@ -66,8 +67,9 @@ def collect(args: argparse.Namespace) -> None:
 
 def fit(args: argparse.Namespace) -> None:
     torch.manual_seed(0)
-    data = np.load(args.data)
-    obs, labels, episodes = data["obs"], data["labels"], data["episodes"]
+    parts = [np.load(path) for path in args.data]
+    obs, labels = np.concatenate([p["obs"] for p in parts]), np.concatenate([p["labels"] for p in parts])
+    episodes = np.concatenate([p["episodes"] + 1_000_000 * k for k, p in enumerate(parts)])
     train = episodes < np.quantile(episodes, 0.8)
     x_train, y_train = torch.from_numpy(obs[train]), torch.from_numpy(labels[train])
     x_test, y_test = torch.from_numpy(obs[~train]), torch.from_numpy(labels[~train])
@@ -143,7 +145,7 @@ def main() -> None:
     c.add_argument("--seed", type=int, default=11)
     c.add_argument("--out", default="/tmp/probe.npz")
     f = sub.add_parser("fit")
-    f.add_argument("data")
+    f.add_argument("data", nargs="+", help="files written by collect")
     f.add_argument("--net", default="flat")
     f.add_argument("--iterations", type=int, default=6000)
     f.add_argument("--batch", type=int, default=128)
