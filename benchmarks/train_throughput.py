@@ -28,6 +28,8 @@ BASE = {"game": {"setting": 1, "obs_type": "pixels", "frame_stack": 4},
         # the paper's reward and plain epsilon-greedy on both paths: RLlib's stock DQN has no teacher
         "train": {"shaping": 0.0, "demonstrations": 0.0, "margin": 0.0, "dagger": False, "prioritized": False,
                   "exploration": "independent",
+                  # configs/paper.yaml's network (the figures in docs/BENCHMARKS.md were taken with it)
+                  "leader_window": None, "channels": (16, 32, 32), "hidden": 128,
                   "learning_starts": 1000, "replay_ratio": 0.125, "batch_size": 32,
                   "replay_capacity": 20_000, "total_env_steps": 10**9},
         "resources": {"num_rollout_actors": 1, "games_per_actor": 8, "cpus_per_rollout_actor": 0.5},
