@@ -32,7 +32,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=200)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    run = RunConfig.load(args.run / "config.yaml")
+    run = RunConfig.load_saved(args.run / "config.yaml")
     modules_dir = (args.run / "checkpoint" / "learner_group" / "learner" / "rl_module").resolve()
     names = module_of_agent(run)
     modules = {m: RLModule.from_checkpoint(str(modules_dir / m)) for m in sorted(set(names))}

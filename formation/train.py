@@ -123,7 +123,7 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         if changed:
             raise ConfigError(f"--resume: --set {changed[0]} would change the run being resumed; "
                               f"allowed: {', '.join(sorted(RESUMABLE))}")
-        run = RunConfig.load(saved, overrides)
+        run = RunConfig.load_saved(saved, overrides)
     else:
         if config_path is None:
             raise ConfigError("config: give a config file, e.g. configs/quickstart.yaml")

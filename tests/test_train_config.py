@@ -1,6 +1,7 @@
 """The training config: defaults, YAML loading, overrides, and one-line errors naming the key."""
 
 import pytest
+import yaml
 
 from formation.config import ConfigError
 from formation.learn.config import RunConfig
@@ -83,3 +84,15 @@ def test_paper_config_is_the_papers_table_2():
     assert (t.dagger, t.demonstrations, t.margin, t.exploration, t.n_step, t.prioritized) == (
         False, 0, 0, "independent", 1, False)
     assert paper.game.max_steps == 200 and paper.game.reward_reach == 50
+
+
+def test_a_saved_run_from_before_a_key_existed_keeps_what_it_trained_with(tmp_path):
+    saved = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "grid"}}).to_dict()
+    del saved["train"]["leader_window"]  # written before the leader window existed: whole-screen networks
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(saved))
+    assert RunConfig.load_saved(path).train.leader_window is None
+    assert RunConfig.load(path).train.leader_window == (12, 3, 10)  # a plain config takes today's default
+    saved["train"]["leader_window"] = [4, 1, 2]
+    path.write_text(yaml.safe_dump(saved))
+    assert RunConfig.load_saved(path).train.leader_window == (4, 1, 2)

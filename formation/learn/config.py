@@ -205,15 +205,16 @@ class RunConfig:
 
     @classmethod
     def load(cls, path: str | Path, overrides: dict[str, Any] | None = None) -> RunConfig:
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"config: no such file {str(path)!r}")
-        try:
-            values = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as err:
-            line = getattr(getattr(err, "problem_mark", None), "line", None)
-            where = f" at line {line + 1}" if line is not None else ""
-            raise ConfigError(f"config: {path} is not valid YAML{where}") from None
+        return cls.from_dict(apply_overrides(_read_yaml(path), overrides or {}))
+
+    @classmethod
+    def load_saved(cls, path: str | Path, overrides: dict[str, Any] | None = None) -> RunConfig:
+        """A run folder's ``config.yaml``: as ``load``, but a key the config gained after the run was
+        written takes the value that run trained with (``LATER_KEYS``), not today's default."""
+        values = _read_yaml(path)
+        for (section, key), value in LATER_KEYS.items():
+            if isinstance(values.get(section), dict) and key not in values[section]:
+                values[section][key] = value
         return cls.from_dict(apply_overrides(values, overrides or {}))
 
     def to_dict(self) -> dict[str, Any]:
@@ -222,6 +223,23 @@ class RunConfig:
             section = dataclasses.asdict(getattr(self, name))
             out[name] = {k: list(v) if isinstance(v, tuple) else v for k, v in section.items()}
         return out
+
+
+# keys added to the config after runs were saved without them, with the value those runs trained with
+LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None}
+
+
+def _read_yaml(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config: no such file {str(path)!r}")
+    try:
+        values = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as err:
+        line = getattr(getattr(err, "problem_mark", None), "line", None)
+        where = f" at line {line + 1}" if line is not None else ""
+        raise ConfigError(f"config: {path} is not valid YAML{where}") from None
+    return values
 
 
 def apply_overrides(values: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
