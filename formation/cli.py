@@ -64,6 +64,65 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    """Write a checkpoint's networks and a policy card that torch alone can load."""
+    from formation.policy import CARD, export, load
+
+    policy = load(args.checkpoint)
+    out = export(policy, args.dir)
+    print(f"exported {', '.join(sorted(policy.networks))} from {args.checkpoint} to {out} ({CARD})")
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """Greedy play of a restored policy on held-out scenarios, against the clairvoyant planner."""
+    import json
+    import os
+    import time
+
+    from formation.evaluate import evaluate_policy, format_report
+    from formation.policy import load
+
+    for name in ("episodes", "workers"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise ConfigError(f"--{name}: {value} is not allowed; allowed: an integer >= 1")
+    if args.seed is not None and args.seed < 0:
+        raise ConfigError(f"--seed: {args.seed} is not allowed; allowed: an integer >= 0")
+    policy = load(args.checkpoint)
+    trained_on = policy.game.setting
+    if args.setting is not None and trained_on != args.setting:
+        what = f"setting {trained_on}" if trained_on is not None else \
+            f"no named setting (a {policy.game.height}x{policy.game.width} board)"
+        raise ConfigError(f"--setting {args.setting}: {args.checkpoint} was trained on {what}, not setting "
+                          f"{args.setting}")
+    episodes = args.episodes or policy.eval_settings["episodes"]
+    seed = policy.eval_settings["seed"] if args.seed is None else args.seed
+    workers = args.workers or min(os.cpu_count() or 1, 8)
+    tty = sys.stderr.isatty()
+    last = [0.0]
+
+    def progress(phase: str, done: int, total: int) -> None:
+        now = time.monotonic()
+        if done < total and not tty and now - last[0] < 10.0:
+            return
+        last[0] = now
+        end = "\n" if (done == total or not tty) else ""
+        start = "\r" if tty else ""
+        print(f"{start}{phase}: {done}/{total} episodes", end=end, file=sys.stderr, flush=True)
+
+    report = evaluate_policy(policy.game, policy.act_batch, episodes, seed, workers=workers, progress=progress)
+    report = {"checkpoint": str(args.checkpoint), "setting": trained_on, "env_steps": policy.env_steps, **report}
+    print(f"{args.checkpoint}: {episodes} greedy episodes"
+          + (f" after {policy.env_steps:,} env steps" if policy.env_steps is not None else ""))
+    print(format_report(report))
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
+        print(f"wrote {args.json}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="formation", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -84,6 +143,20 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                        help="override a config value, e.g. --set train.gamma=0.99")
     train.set_defaults(run=cmd_train)
+
+    evaluate = sub.add_parser("evaluate", help="greedy play of a trained policy against the clairvoyant planner")
+    evaluate.add_argument("checkpoint", help="a run folder, its checkpoint/ folder, or a `formation export` folder")
+    evaluate.add_argument("--episodes", type=int, help="episodes (default: the run's eval.episodes, or 200)")
+    evaluate.add_argument("--seed", type=int, help="scenario seed (default: the run's eval.seed, or 1000000)")
+    evaluate.add_argument("--setting", type=int, help="fail unless the policy was trained on this named setting")
+    evaluate.add_argument("--workers", type=int, help="processes for the planner (default: the CPU cores, up to 8)")
+    evaluate.add_argument("--json", metavar="PATH", help="also write the numbers as JSON")
+    evaluate.set_defaults(run=cmd_evaluate)
+
+    export = sub.add_parser("export", help="write a checkpoint's networks and a policy card for torch alone")
+    export.add_argument("checkpoint", help="a run folder or its checkpoint/ folder (or an export)")
+    export.add_argument("dir", help="output folder: <module>.pt and policy.json")
+    export.set_defaults(run=cmd_export)
     return parser
 
 

@@ -1,0 +1,292 @@
+"""Trained policies outside training: restore a run's greedy team from its checkpoint or from an export.
+
+    policy = load("runs/s1")             # a run folder of `formation train` (config.yaml, checkpoint/)
+    policy = load("runs/s1/checkpoint")  # the checkpoint inside one
+    policy = load("exports/s1")          # a folder written by `formation export` (policy.json, <module>.pt)
+
+    env = formation.env.parallel_env(**policy.env_config)
+    obs, _ = env.reset(seed=0)
+    obs, rewards, *_ = env.step(policy.act(obs))
+
+A run's modules are read from ``checkpoint/learner_group/learner/rl_module/<module>/module_state.pkl``
+(plain numpy arrays) into the same ``DuelingQNetwork`` the RLlib module wraps, built from the run's
+``config.yaml`` exactly as training builds it; no Ray cluster is started. An export holds each
+module's ``q_network`` state dict (``<module>.pt``) and a card, ``policy.json``, with everything
+needed to rebuild the networks with torch alone. Greedy actions are the argmax of the Q-values, as
+in training's greedy evaluation (``FormationAlgorithm.play_greedy``).
+
+Bad input (a missing path, a folder that is no checkpoint, a damaged file) raises ``PolicyError``,
+a ``ConfigError`` with one line naming the problem.
+"""
+
+from __future__ import annotations
+
+import json
+import pickle
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from formation.config import ConfigError, GameConfig
+from formation.learn.qnet import DuelingQNetwork
+
+FORMAT_VERSION = 1
+CARD = "policy.json"
+RL_MODULES = Path("checkpoint") / "learner_group" / "learner" / "rl_module"
+DEFAULT_EVAL = {"episodes": 200, "seed": 1_000_000}
+
+
+class PolicyError(ConfigError):
+    """A path that holds no usable policy: one line naming the path and what is wrong."""
+
+
+@dataclass(frozen=True)
+class NetworkSpec:
+    """What ``DuelingQNetwork`` needs to be rebuilt: the card's ``networks.<module>``."""
+
+    obs_shape: tuple[int, int, int]
+    high: float
+    hidden: int
+    channels: tuple[int, int, int]
+    window: tuple[int, int, int] | None = None
+    frame_channels: int | None = None
+
+    def build(self) -> DuelingQNetwork:
+        return DuelingQNetwork(self.obs_shape, high=self.high, hidden=self.hidden, channels=self.channels,
+                               window=self.window, frame_channels=self.frame_channels)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"obs_shape": list(self.obs_shape), "high": self.high, "hidden": self.hidden,
+                "channels": list(self.channels), "window": list(self.window) if self.window is not None else None,
+                "frame_channels": self.frame_channels}
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> NetworkSpec:
+        window = values.get("window")
+        frame_channels = values.get("frame_channels")
+        return cls(obs_shape=tuple(int(v) for v in values["obs_shape"]), high=float(values["high"]),
+                   hidden=int(values["hidden"]), channels=tuple(int(v) for v in values["channels"]),
+                   window=tuple(int(v) for v in window) if window is not None else None,
+                   frame_channels=int(frame_channels) if frame_channels is not None else None)
+
+
+class Policy:
+    """The greedy team: one Q-network per module, and which agent acts with which module."""
+
+    def __init__(self, game: GameConfig, networks: dict[str, DuelingQNetwork], specs: dict[str, NetworkSpec],
+                 agent_modules: list[str], source: str, env_steps: int | None = None,
+                 eval_settings: dict[str, int] | None = None):
+        self.game = game
+        self.networks = networks
+        self.specs = specs
+        self.agent_modules = list(agent_modules)
+        self.source = source
+        self.env_steps = env_steps
+        self.eval_settings = dict(eval_settings or DEFAULT_EVAL)
+        for net in networks.values():
+            net.eval()
+            net.requires_grad_(False)
+
+    @property
+    def agents(self) -> list[str]:
+        return list(self.game.agent_names)
+
+    @property
+    def env_config(self) -> dict[str, Any]:
+        """Keyword arguments of ``formation.env.parallel_env`` for the game the policy was trained on."""
+        return self.game.to_dict()
+
+    @property
+    def module_of(self) -> dict[str, str]:
+        return dict(zip(self.agents, self.agent_modules))
+
+    def q_values(self, obs: np.ndarray, module: str) -> np.ndarray:
+        """Q-values (N, 4) of one module for uint8 observations (N, h, w, c)."""
+        with torch.no_grad():
+            return self.networks[module](torch.from_numpy(np.ascontiguousarray(obs))).numpy()
+
+    def act_batch(self, obs: np.ndarray) -> np.ndarray:
+        """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares
+        (``formation.evaluate.play_greedy``'s ``act``)."""
+        x = torch.from_numpy(np.ascontiguousarray(obs))
+        with torch.no_grad():
+            greedy = {m: self.networks[m](x).argmax(dim=-1).numpy() for m in sorted(set(self.agent_modules))}
+        return np.stack([greedy[m] for m in self.agent_modules], axis=1)
+
+    def act(self, observations: dict[str, np.ndarray]) -> dict[str, int]:
+        """Greedy actions of the agents in ``observations`` (per-agent observations as the PettingZoo
+        env returns them)."""
+        unknown = [a for a in observations if a not in self.module_of]
+        if unknown:
+            raise ValueError(f"observations: unknown agent(s) {unknown}; this policy's agents: {self.agents}")
+        by_module: dict[str, list[str]] = {}
+        for agent in observations:
+            by_module.setdefault(self.module_of[agent], []).append(agent)
+        actions: dict[str, int] = {}
+        with torch.no_grad():
+            for module, agents in by_module.items():
+                x = torch.from_numpy(np.stack([np.asarray(observations[a]) for a in agents]))
+                for agent, action in zip(agents, self.networks[module](x).argmax(dim=-1).tolist()):
+                    actions[agent] = int(action)
+        return {a: actions[a] for a in observations}
+
+    def card(self) -> dict[str, Any]:
+        """The export's ``policy.json``."""
+        return {"format_version": FORMAT_VERSION, "game": self.game.to_dict(),
+                "networks": {m: spec.to_dict() for m, spec in sorted(self.specs.items())},
+                "agents": self.module_of, "source": self.source, "env_steps": self.env_steps,
+                "eval": dict(self.eval_settings)}
+
+
+def export(policy: Policy, out: str | Path) -> Path:
+    """Write ``<module>.pt`` (each q_network's state dict) and ``policy.json`` into ``out``."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise PolicyError(f"export: {str(out)!r} exists and is not a folder")
+    out.mkdir(parents=True, exist_ok=True)
+    for module, net in sorted(policy.networks.items()):
+        torch.save(net.state_dict(), out / f"{module}.pt")
+    (out / CARD).write_text(json.dumps(policy.card(), indent=2) + "\n")
+    return out
+
+
+def load(path: str | Path) -> Policy:
+    """A run folder, the ``checkpoint/`` inside one, or an exported policy folder -> ``Policy``."""
+    path = Path(path)
+    if not path.exists():
+        raise PolicyError(f"checkpoint: no such file or folder {str(path)!r}")
+    if not path.is_dir():
+        raise PolicyError(f"checkpoint: {str(path)!r} is a file; give a run folder (config.yaml, checkpoint/), "
+                          f"its checkpoint/ folder, or an exported policy folder ({CARD})")
+    if (path / CARD).is_file():
+        return _load_export(path)
+    if (path / "config.yaml").is_file() and (path / RL_MODULES.parts[0]).is_dir():
+        return _load_run(path)
+    if path.name == RL_MODULES.parts[0] and (path.parent / "config.yaml").is_file():
+        return _load_run(path.parent)
+    raise PolicyError(f"checkpoint: {str(path)!r} is not a checkpoint; give a run folder (config.yaml, "
+                      f"checkpoint/), its checkpoint/ folder, or an exported policy folder ({CARD})")
+
+
+# ---------------------------------------------------------------------- run folders
+def run_specs(run) -> tuple[dict[str, NetworkSpec], list[str]]:
+    """The network of each module and the module of each agent, as training builds them
+    (``formation.learn.algorithm.module_specs``)."""
+    from formation.learn.algorithm import leader_window_config
+    from formation.learn.rollout_actor import module_of_agent, spaces_of
+
+    obs_space, _ = spaces_of(run)
+    shape = tuple(int(v) for v in obs_space.shape)
+    extra = leader_window_config(run, shape)
+    window = extra.get("window")
+    spec = NetworkSpec(obs_shape=shape, high=float(obs_space.high.max()), hidden=int(run.train.hidden),
+                       channels=tuple(int(c) for c in run.train.channels),
+                       window=tuple(int(v) for v in window) if window is not None else None,
+                       frame_channels=extra.get("frame_channels"))
+    agent_modules = module_of_agent(run)
+    return {m: spec for m in sorted(set(agent_modules))}, agent_modules
+
+
+def _load_run(run_dir: Path) -> Policy:
+    from formation.learn.config import RunConfig
+
+    try:
+        run = RunConfig.load_saved(run_dir / "config.yaml")
+    except ConfigError as err:
+        raise PolicyError(f"checkpoint: {str(run_dir / 'config.yaml')!r}: {err}") from None
+    specs, agent_modules = run_specs(run)
+    networks = {}
+    for module, spec in specs.items():
+        state_file = run_dir / RL_MODULES / module / "module_state.pkl"
+        if not state_file.is_file():
+            raise PolicyError(f"checkpoint: {str(run_dir / RL_MODULES)!r} has no module {module!r} "
+                              f"(expected {str(state_file)!r}); the run may not have saved a checkpoint yet")
+        try:
+            with state_file.open("rb") as f:
+                state = pickle.load(f)
+            weights = {k[len("q_network."):]: torch.as_tensor(np.array(v)) for k, v in state.items()
+                       if k.startswith("q_network.")}
+        except Exception as err:  # a damaged pickle raises any of several kinds
+            raise PolicyError(f"checkpoint: {str(state_file)!r} is damaged or not a module state "
+                              f"({type(err).__name__})") from None
+        networks[module] = _with_weights(spec, weights, state_file)
+    return Policy(run.game, networks, specs, agent_modules, source=str(run_dir), env_steps=_env_steps(run_dir),
+                  eval_settings={"episodes": run.eval.episodes, "seed": run.eval.seed})
+
+
+def _env_steps(run_dir: Path) -> int | None:
+    """Env steps of the run: result.json's, else the last metrics line's."""
+    try:
+        return int(json.loads((run_dir / "result.json").read_text())["env_steps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
+    try:
+        lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+        return int(json.loads(lines[-1])["env_steps"]) if lines else None
+    except (OSError, ValueError, KeyError, TypeError, IndexError):
+        return None
+
+
+# ---------------------------------------------------------------------- exports
+def _load_export(folder: Path) -> Policy:
+    card_file = folder / CARD
+    try:
+        card = json.loads(card_file.read_text())
+    except (OSError, ValueError) as err:
+        raise PolicyError(f"export: {str(card_file)!r} is not valid JSON ({type(err).__name__})") from None
+    if not isinstance(card, dict):
+        raise PolicyError(f"export: {str(card_file)!r} is not a policy card (a JSON object is needed)")
+    version = card.get("format_version")
+    if version != FORMAT_VERSION:
+        raise PolicyError(f"export: {str(card_file)!r} has format_version {version!r}; "
+                          f"this version reads {FORMAT_VERSION}")
+    try:
+        game = GameConfig.from_dict(card["game"])
+        specs = {m: NetworkSpec.from_dict(v) for m, v in card["networks"].items()}
+        agents_map = card["agents"]
+        agent_modules = [agents_map[a] for a in game.agent_names]
+        eval_settings = {k: int(card.get("eval", {}).get(k, DEFAULT_EVAL[k])) for k in DEFAULT_EVAL}
+        env_steps = card.get("env_steps")
+        env_steps = int(env_steps) if env_steps is not None else None
+    except ConfigError as err:
+        raise PolicyError(f"export: {str(card_file)!r}: game.{err}") from None
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        raise PolicyError(f"export: {str(card_file)!r} is not a complete policy card "
+                          f"({type(err).__name__}: {err})") from None
+    missing = sorted(set(agent_modules) - set(specs))
+    if missing:
+        raise PolicyError(f"export: {str(card_file)!r} maps agents to module(s) {missing} without a network")
+    networks = {}
+    for module in sorted(set(agent_modules)):
+        weights_file = folder / f"{module}.pt"
+        if not weights_file.is_file():
+            raise PolicyError(f"export: {str(weights_file)!r} is missing (module {module!r} of {str(card_file)!r})")
+        try:
+            weights = torch.load(weights_file, map_location="cpu", weights_only=True)
+        except Exception as err:  # truncated or foreign files raise any of several kinds
+            raise PolicyError(f"export: {str(weights_file)!r} is damaged or not a state dict "
+                              f"({type(err).__name__})") from None
+        networks[module] = _with_weights(specs[module], weights, weights_file)
+    return Policy(game, networks, {m: specs[m] for m in networks}, agent_modules, source=str(card.get("source")),
+                  env_steps=env_steps, eval_settings=eval_settings)
+
+
+def _with_weights(spec: NetworkSpec, weights: Any, where: Path) -> DuelingQNetwork:
+    if not isinstance(weights, dict):
+        raise PolicyError(f"checkpoint: {str(where)!r} holds no state dict")
+    try:
+        net = spec.build()
+    except (RuntimeError, ValueError, TypeError) as err:
+        raise PolicyError(f"checkpoint: the network of {str(where)!r} cannot be built ({err})") from None
+    try:
+        net.load_state_dict(weights, strict=True)
+    except (RuntimeError, TypeError, KeyError) as err:
+        lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+        detail = (lines[1] if len(lines) > 1 else lines[0] if lines else type(err).__name__)[:200]
+        raise PolicyError(f"checkpoint: {str(where)!r} does not fit the network its config describes ({detail})") \
+            from None
+    net.eval()
+    return net

@@ -1,0 +1,167 @@
+"""Checkpoint restore for evaluation: `formation.policy.load`, `formation export`, `formation evaluate`.
+
+One smoke run (configs/smoke.yaml, under a minute) serves the whole module."""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from formation.cli import main
+from formation.env import parallel_env
+from formation.evaluate import compare_with_planner, planner_paths, planner_reference, play_greedy, replay_paths
+from formation.learn.config import RunConfig
+from formation.policy import RL_MODULES, PolicyError, load
+
+SMOKE = "configs/smoke.yaml"
+ENV = dict(os.environ, RAY_ADDRESS="")  # a local Ray of its own, not a cluster the shell may know
+
+
+def cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "formation.cli", *args], capture_output=True, text=True, env=ENV,
+                          timeout=600)
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("policy") / "smoke"
+    done = cli("train", SMOKE, "--out", str(out))
+    assert done.returncode == 0, done.stderr[-3000:]
+    return out
+
+
+@pytest.fixture(scope="module")
+def export_dir(run_dir, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("export") / "smoke"
+    assert main(["export", str(run_dir / "checkpoint"), str(out)]) == 0
+    return out
+
+
+def test_evaluate_is_reproducible_and_matches_trainings_final_evaluation(run_dir, tmp_path):
+    first, second = tmp_path / "a.json", tmp_path / "b.json"
+    done = cli("evaluate", str(run_dir), "--json", str(first), "--workers", "2")
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "success" in done.stdout and "optimality gap" in done.stdout
+    assert main(["evaluate", str(run_dir), "--json", str(second), "--workers", "1"]) == 0
+    a, b = json.loads(first.read_text()), json.loads(second.read_text())
+    assert a == b
+    run = RunConfig.load(run_dir / "config.yaml")
+    assert (a["episodes"], a["seed"]) == (run.eval.episodes, run.eval.seed)
+    result = json.loads((run_dir / "result.json").read_text())
+    assert a["env_steps"] == result["env_steps"]
+    # the same episodes as training's final greedy evaluation: every number of its summary agrees
+    assert a["success"] == result["greedy"]["success"]
+    for key, value in result["greedy"].items():
+        assert a[key] == pytest.approx(value), key
+    planner = a["planner"]
+    assert planner["planner_solved"] <= a["episodes"]
+    if a["success"] > 0:  # the planner's paths are the shortest: nobody succeeds faster
+        assert planner["optimality_gap_mean"] >= 0
+        assert a["steps_success_mean"] == pytest.approx(planner["planner_steps_on_successes_mean"]
+                                                        + planner["optimality_gap_mean"])
+
+
+def test_run_folder_and_export_give_the_same_actions_on_pettingzoo_observations(run_dir, export_dir):
+    from_run, from_checkpoint, exported = load(run_dir), load(run_dir / "checkpoint"), load(export_dir)
+    card = json.loads((export_dir / "policy.json").read_text())
+    assert card["format_version"] == 1 and card["agents"] == {"leader": "leader", "follower": "follower"}
+    assert card["env_steps"] == json.loads((run_dir / "result.json").read_text())["env_steps"]
+    assert sorted(p.name for p in export_dir.glob("*.pt")) == ["follower.pt", "leader.pt"]
+    assert exported.env_config == from_run.env_config and exported.agents == ["leader", "follower"]
+    assert exported.eval_settings == from_run.eval_settings
+    env = parallel_env(**exported.env_config)
+    assert env.config == from_run.game  # the same game, observation type and frame stack included
+    compared = 0
+    for seed in range(3):
+        obs, _ = env.reset(seed=seed)
+        for _ in range(6):
+            assert obs["leader"].shape == env.observation_space("leader").shape
+            actions = from_run.act(obs)
+            assert set(actions) == set(env.agents) and all(a in range(4) for a in actions.values())
+            assert exported.act(obs) == actions == from_checkpoint.act(obs)
+            batch = np.stack([obs["leader"]])
+            assert from_run.act_batch(batch).tolist() == [[actions["leader"], actions["follower"]]]
+            for module in ("leader", "follower"):
+                np.testing.assert_array_equal(from_run.q_values(batch, module), exported.q_values(batch, module))
+            compared += 1
+            obs, _, term, trunc, _ = env.step(actions)
+            if any(term.values()) or any(trunc.values()):
+                break
+    assert compared >= 3
+
+
+def test_the_planner_replayed_has_no_optimality_gap_and_earns_the_best_return():
+    config = RunConfig.load(SMOKE).game
+    n, seed = 24, 1_000_000
+    scenarios = play_greedy(config, lambda obs: np.full((len(obs), 2), 3), n, seed)["scenarios"]
+    paths = planner_paths(config, scenarios)
+    assert sum(p is not None for p in paths) >= n // 2
+    played = play_greedy(config, replay_paths(paths, 2), n, seed)  # the same scenarios, from the seed
+    reference = planner_reference(config, played["scenarios"], workers=2)
+    assert (reference["success"] == reference["solved"]).all()
+    assert (played["success"] == reference["solved"]).all()
+    report = compare_with_planner(played, reference, config.agent_names)
+    assert report["optimality_gap_mean"] == 0 and report["optimality_gap_max"] == 0
+    assert report["return_ratio"] == {"leader": 1.0, "follower": 1.0, "team": 1.0}
+    # a policy that stands still never succeeds: no gap to measure, and another return than the planner's
+    still = play_greedy(config, lambda obs: np.full((len(obs), 2), 3), n, seed)
+    worse = compare_with_planner(still, reference, config.agent_names)
+    assert not still["success"].any() and worse["optimality_gap_mean"] is None
+    assert worse["return_ratio"]["leader"] != 1.0
+
+
+def _one_line_error(capfd, code: int) -> str:
+    out, err = capfd.readouterr()
+    assert code != 0
+    assert "Traceback" not in out + err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def test_a_missing_path_or_a_folder_without_a_checkpoint_is_one_line(tmp_path, capfd):
+    line = _one_line_error(capfd, main(["evaluate", str(tmp_path / "nowhere")]))
+    assert "no such file or folder" in line and "nowhere" in line
+    (tmp_path / "empty").mkdir()
+    line = _one_line_error(capfd, main(["export", str(tmp_path / "empty"), str(tmp_path / "out")]))
+    assert "is not a checkpoint" in line and "empty" in line
+    with pytest.raises(PolicyError):
+        load(tmp_path / "empty")
+
+
+def test_a_checkpoint_of_another_setting_is_one_line_naming_both(run_dir, capfd):
+    line = _one_line_error(capfd, main(["evaluate", str(run_dir), "--setting", "2"]))
+    assert "--setting 2" in line and "no named setting" in line and "9x9" in line
+
+
+def test_a_truncated_export_module_is_one_line_and_no_traceback(export_dir, tmp_path):
+    bad = tmp_path / "bad"
+    shutil.copytree(export_dir, bad)
+    weights = (bad / "leader.pt").read_bytes()
+    (bad / "leader.pt").write_bytes(weights[: len(weights) // 2])
+    done = cli("evaluate", str(bad))
+    assert done.returncode != 0
+    assert "Traceback" not in done.stdout + done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "leader.pt" in lines[0] and "damaged" in lines[0], done.stderr
+
+
+def test_a_truncated_checkpoint_module_or_a_foreign_card_is_one_line(run_dir, export_dir, tmp_path, capfd):
+    bad_run = tmp_path / "run"
+    shutil.copytree(run_dir, bad_run)
+    state = bad_run / RL_MODULES / "follower" / "module_state.pkl"
+    state.write_bytes(state.read_bytes()[:500])
+    line = _one_line_error(capfd, main(["evaluate", str(bad_run / "checkpoint")]))
+    assert "module_state.pkl" in line and "damaged" in line
+    bad_card = tmp_path / "card"
+    shutil.copytree(export_dir, bad_card)
+    card = json.loads((bad_card / "policy.json").read_text())
+    card["networks"]["leader"]["hidden"] += 1  # a card that does not describe its weights
+    (bad_card / "policy.json").write_text(json.dumps(card))
+    line = _one_line_error(capfd, main(["evaluate", str(bad_card)]))
+    assert "leader.pt" in line and "does not fit" in line
