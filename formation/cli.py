@@ -123,6 +123,27 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_render(args: argparse.Namespace) -> int:
+    """The paper's pictures of a trained policy: episodes.gif, paths.png, q_values.png, training.png."""
+    from formation.pictures import render
+    from formation.policy import load
+
+    if args.episodes < 1:
+        raise ConfigError(f"--episodes: {args.episodes} is not allowed; allowed: an integer >= 1")
+    if args.seed is not None and args.seed < 0:
+        raise ConfigError(f"--seed: {args.seed} is not allowed; allowed: an integer >= 0")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out: {str(out)!r} exists and is not a folder")
+    policy = load(args.checkpoint)
+    path = Path(args.checkpoint)
+    run_dir = path if (path / "config.yaml").is_file() else path.parent
+    seed = policy.eval_settings["seed"] if args.seed is None else args.seed
+    for written in render(policy, out, episodes=args.episodes, seed=seed, metrics=run_dir / "metrics.jsonl"):
+        print(f"wrote {written}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="formation", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -157,6 +178,13 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("checkpoint", help="a run folder or its checkpoint/ folder (or an export)")
     export.add_argument("dir", help="output folder: <module>.pt and policy.json")
     export.set_defaults(run=cmd_export)
+
+    render = sub.add_parser("render", help="draw a trained policy's episodes, paths, Q-values and training curves")
+    render.add_argument("checkpoint", help="a run folder, its checkpoint/ folder, or a `formation export` folder")
+    render.add_argument("--out", required=True, help="output folder for the pictures")
+    render.add_argument("--episodes", type=int, default=4, help="greedy episodes to show (default 4)")
+    render.add_argument("--seed", type=int, help="scenario seed (default: the run's eval.seed, or 1000000)")
+    render.set_defaults(run=cmd_render)
     return parser
 
 
