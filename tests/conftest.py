@@ -7,6 +7,9 @@ checked against ``BatchedGame`` (the only implementation of the rules) step for 
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 from dataclasses import dataclass
 
 import pytest
@@ -74,3 +77,28 @@ def reference_step(config, positions, obstacles, actions, steps_before: int) -> 
 def reference():
     """The spec's rules in plain Python (see ``reference_step``)."""
     return reference_step
+
+
+# -- one smoke training (configs/smoke.yaml, under a minute) for every test that needs a trained run
+
+SMOKE_ENV = dict(os.environ, RAY_ADDRESS="")  # a local Ray of its own, not a cluster the shell may know
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    """``formation ARGS`` in a subprocess."""
+    return subprocess.run([sys.executable, "-m", "formation.cli", *args], capture_output=True, text=True,
+                          env=SMOKE_ENV, timeout=600)
+
+
+@pytest.fixture(scope="session")
+def cli():
+    return run_cli
+
+
+@pytest.fixture(scope="session")
+def smoke_run(tmp_path_factory):
+    """A run folder of ``formation train configs/smoke.yaml``; tests only read it (copy it to change it)."""
+    out = tmp_path_factory.mktemp("smoke") / "run"
+    done = run_cli("train", "configs/smoke.yaml", "--out", str(out))
+    assert done.returncode == 0, done.stderr[-3000:]
+    return out

@@ -1,9 +1,6 @@
 """`formation render`: the paper's pictures of a trained policy (episodes.gif, paths.png, q_values.png,
-training.png). One smoke run (configs/smoke.yaml, under a minute) serves the whole module."""
+training.png). One smoke run (conftest's ``smoke_run``) serves the whole module."""
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,22 +11,12 @@ from formation import pictures
 from formation.cli import main
 from formation.policy import load
 
-SMOKE = "configs/smoke.yaml"
-ENV = dict(os.environ, RAY_ADDRESS="")  # a local Ray of its own, not a cluster the shell may know
 EPISODES = 3
 
 
-def cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "formation.cli", *args], capture_output=True, text=True, env=ENV,
-                          timeout=600)
-
-
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("pictures") / "smoke"
-    done = cli("train", SMOKE, "--out", str(out))
-    assert done.returncode == 0, done.stderr[-3000:]
-    return out
+def run_dir(smoke_run) -> Path:
+    return smoke_run
 
 
 def not_flat(image: Image.Image) -> bool:
@@ -96,7 +83,7 @@ def test_paths_follow_the_replayed_episode_and_draw_the_leaders_start(run_dir):
     assert len(steps) == pictures.KEY_FRAMES and steps[0] == 0 and max(steps) == episodes[0].steps - 1
 
 
-def test_export_renders_without_training_curves(run_dir, tmp_path):
+def test_export_renders_without_training_curves(run_dir, tmp_path, cli):
     export_dir = tmp_path / "export"
     assert main(["export", str(run_dir), str(export_dir)]) == 0
     out = tmp_path / "pictures"

@@ -1,12 +1,9 @@
 """Checkpoint restore for evaluation: `formation.policy.load`, `formation export`, `formation evaluate`.
 
-One smoke run (configs/smoke.yaml, under a minute) serves the whole module."""
+One smoke run (conftest's ``smoke_run``) serves the whole module."""
 
 import json
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,20 +16,11 @@ from formation.learn.config import RunConfig
 from formation.policy import RL_MODULES, PolicyError, load
 
 SMOKE = "configs/smoke.yaml"
-ENV = dict(os.environ, RAY_ADDRESS="")  # a local Ray of its own, not a cluster the shell may know
-
-
-def cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "formation.cli", *args], capture_output=True, text=True, env=ENV,
-                          timeout=600)
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("policy") / "smoke"
-    done = cli("train", SMOKE, "--out", str(out))
-    assert done.returncode == 0, done.stderr[-3000:]
-    return out
+def run_dir(smoke_run) -> Path:
+    return smoke_run
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +30,7 @@ def export_dir(run_dir, tmp_path_factory) -> Path:
     return out
 
 
-def test_evaluate_is_reproducible_and_matches_trainings_final_evaluation(run_dir, tmp_path):
+def test_evaluate_is_reproducible_and_matches_trainings_final_evaluation(run_dir, tmp_path, cli):
     first, second = tmp_path / "a.json", tmp_path / "b.json"
     done = cli("evaluate", str(run_dir), "--json", str(first), "--workers", "2")
     assert done.returncode == 0, done.stderr[-3000:]
@@ -139,7 +127,7 @@ def test_a_checkpoint_of_another_setting_is_one_line_naming_both(run_dir, capfd)
     assert "--setting 2" in line and "no named setting" in line and "9x9" in line
 
 
-def test_a_truncated_export_module_is_one_line_and_no_traceback(export_dir, tmp_path):
+def test_a_truncated_export_module_is_one_line_and_no_traceback(export_dir, tmp_path, cli):
     bad = tmp_path / "bad"
     shutil.copytree(export_dir, bad)
     weights = (bad / "leader.pt").read_bytes()
