@@ -75,9 +75,10 @@ class LeaderWindow(nn.Module):
 
     def leader_mask(self, obs: torch.Tensor) -> torch.Tensor:
         """(N, H, W) bool: the leader's entries in the newest frame of uint8 observations."""
+        newest = obs[..., -self.frame_channels:]
         if not self.screens:
-            return obs[..., -1] > 0
-        red, green, blue = obs[..., -3], obs[..., -2], obs[..., -1]
+            return newest[..., -1] > 0  # GRID_PLANES: destination, obstacles, followers, leader
+        red, green, blue = newest[..., 0], newest[..., 1], newest[..., 2]
         return (blue > 127) & (red < 128) & (green < 128)
 
     def forward(self, obs: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
