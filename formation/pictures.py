@@ -132,14 +132,12 @@ def play_episodes(policy, episodes: int, seed: int) -> list[Episode]:
     from formation.evaluate import play_greedy
 
     config = policy.game
-    modules = list(policy.agent_modules)
     last_q: list[np.ndarray] = []
     actions_of: list[list[np.ndarray]] = [[] for _ in range(episodes)]
     q_of: list[list[np.ndarray]] = [[] for _ in range(episodes)]
 
     def act(obs: np.ndarray) -> np.ndarray:
-        by_module = {m: policy.q_values(obs, m) for m in sorted(set(modules))}
-        q = np.stack([by_module[m] for m in modules], axis=1)  # (N, 1+k, 4)
+        q = policy.q_batch(obs)  # (N, 1+k, 4)
         last_q[:] = [q]
         return q.argmax(axis=-1)
 
@@ -570,7 +568,7 @@ def write_training(path: str | Path, metrics: str | Path) -> Path:
 def render(policy, out: str | Path, episodes: int = 4, seed: int = 0, metrics: str | Path | None = None,
            note=print) -> list[Path]:
     """``formation render``: episodes.gif, paths.png, q_values.png and, given a metrics.jsonl, training.png
-    in ``out``. ``policy`` is a ``formation.policy.Policy`` (its ``game``, ``agent_modules``, ``q_values``)."""
+    in ``out``. ``policy`` is a ``formation.policy.Policy`` (its ``game`` and ``q_batch``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     played = play_episodes(policy, episodes, seed)

@@ -108,13 +108,16 @@ class Policy:
         with torch.no_grad():
             return self.networks[module](torch.from_numpy(np.ascontiguousarray(obs))).numpy()
 
+    def q_batch(self, obs: np.ndarray) -> np.ndarray:
+        """Every agent's Q-values (N, 1+k, 4) for a batch of observations (N, h, w, c) every agent shares;
+        each module runs once, whatever the number of agents using it."""
+        by_module = {m: self.q_values(obs, m) for m in sorted(set(self.agent_modules))}
+        return np.stack([by_module[m] for m in self.agent_modules], axis=1)
+
     def act_batch(self, obs: np.ndarray) -> np.ndarray:
         """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares
         (``formation.evaluate.play_greedy``'s ``act``)."""
-        x = torch.from_numpy(np.ascontiguousarray(obs))
-        with torch.no_grad():
-            greedy = {m: self.networks[m](x).argmax(dim=-1).numpy() for m in sorted(set(self.agent_modules))}
-        return np.stack([greedy[m] for m in self.agent_modules], axis=1)
+        return self.q_batch(obs).argmax(axis=-1)
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, int]:
         """Greedy actions of the agents in ``observations`` (per-agent observations as the PettingZoo
