@@ -11,6 +11,8 @@ import yaml
 
 from formation.config import ConfigError, GameConfig
 
+CHECKPOINT_HELP = "a run folder (or its storage URI), its checkpoint/ folder, or a `formation export` folder"
+
 
 def parse_overrides(pairs: list[str]) -> dict[str, Any]:
     """``key=value`` strings with YAML values (``d_max=5``, ``obs_type=grid``, ``leader_start=[9,3]``)."""
@@ -67,8 +69,9 @@ def cmd_train(args: argparse.Namespace) -> int:
 def cmd_export(args: argparse.Namespace) -> int:
     """Write a checkpoint's networks and a policy card that torch alone can load."""
     from formation.policy import CARD, export, load
+    from formation.storage import local_run_folder
 
-    policy = load(args.checkpoint)
+    policy = load(local_run_folder(args.checkpoint))
     out = export(policy, args.dir)
     print(f"exported {', '.join(sorted(policy.networks))} from {args.checkpoint} to {out} ({CARD})")
     return 0
@@ -82,6 +85,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     from formation.evaluate import evaluate_policy, format_report
     from formation.policy import load
+    from formation.storage import local_run_folder
 
     for name in ("episodes", "workers"):
         value = getattr(args, name)
@@ -89,7 +93,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             raise ConfigError(f"--{name}: {value} is not allowed; allowed: an integer >= 1")
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed: {args.seed} is not allowed; allowed: an integer >= 0")
-    policy = load(args.checkpoint)
+    policy = load(local_run_folder(args.checkpoint))
     trained_on = policy.game.setting
     if args.setting is not None and trained_on != args.setting:
         what = f"setting {trained_on}" if trained_on is not None else \
@@ -127,6 +131,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     """The paper's pictures of a trained policy: episodes.gif, paths.png, q_values.png, training.png."""
     from formation.pictures import render
     from formation.policy import load
+    from formation.storage import local_run_folder
 
     if args.episodes < 1:
         raise ConfigError(f"--episodes: {args.episodes} is not allowed; allowed: an integer >= 1")
@@ -135,8 +140,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out: {str(out)!r} exists and is not a folder")
-    policy = load(args.checkpoint)
-    path = Path(args.checkpoint)
+    path = local_run_folder(args.checkpoint)
+    policy = load(path)
     run_dir = path if (path / "config.yaml").is_file() else path.parent
     seed = policy.eval_settings["seed"] if args.seed is None else args.seed
     for written in render(policy, out, episodes=args.episodes, seed=seed, metrics=run_dir / "metrics.jsonl"):
@@ -159,14 +164,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     train = sub.add_parser("train", help="train the leader and follower policies from a config")
     train.add_argument("config", nargs="?", help="a YAML config, e.g. configs/quickstart.yaml")
-    train.add_argument("--out", help="run folder (default runs/<config name>)")
+    train.add_argument("--out", help="run folder, or a storage URI such as s3://bucket/runs/s1 "
+                                      "(default runs/<config name>)")
     train.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     train.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                        help="override a config value, e.g. --set train.gamma=0.99")
     train.set_defaults(run=cmd_train)
 
     evaluate = sub.add_parser("evaluate", help="greedy play of a trained policy against the clairvoyant planner")
-    evaluate.add_argument("checkpoint", help="a run folder, its checkpoint/ folder, or a `formation export` folder")
+    evaluate.add_argument("checkpoint", help=CHECKPOINT_HELP)
     evaluate.add_argument("--episodes", type=int, help="episodes (default: the run's eval.episodes, or 200)")
     evaluate.add_argument("--seed", type=int, help="scenario seed (default: the run's eval.seed, or 1000000)")
     evaluate.add_argument("--setting", type=int, help="fail unless the policy was trained on this named setting")
@@ -180,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     export.set_defaults(run=cmd_export)
 
     render = sub.add_parser("render", help="draw a trained policy's episodes, paths, Q-values and training curves")
-    render.add_argument("checkpoint", help="a run folder, its checkpoint/ folder, or a `formation export` folder")
+    render.add_argument("checkpoint", help=CHECKPOINT_HELP)
     render.add_argument("--out", required=True, help="output folder for the pictures")
     render.add_argument("--episodes", type=int, default=4, help="greedy episodes to show (default 4)")
     render.add_argument("--seed", type=int, help="scenario seed (default: the run's eval.seed, or 1000000)")

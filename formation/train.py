@@ -3,7 +3,9 @@ metrics (JSON lines and TensorBoard), checkpoints, and resume.
 
 Run folder (``--out``): ``config.yaml`` (the resolved config), ``metrics.jsonl`` (one line per
 iteration), ``tb/`` (TensorBoard), ``checkpoint/`` (RLlib's own format, the latest), and
-``result.json`` (the final greedy evaluation).
+``result.json`` (the final greedy evaluation). ``--out`` may also be a storage URI (``formation.storage``).
+
+What a failure costs: docs/FAULTS.md.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import shutil
 import signal
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -23,9 +26,11 @@ import yaml
 from formation.config import ConfigError
 from formation.learn.config import RunConfig
 from formation.pictures import write_episodes_gif
+from formation.storage import RemoteRun, is_uri
 
 CHECKPOINT = "checkpoint"
 RESUMABLE = {"train.total_env_steps"}  # what --set may change when resuming
+FAULT_COUNTERS = ("rollout_actor_restarts", "replay_restarts", "updates_skipped")
 
 
 class Stop(KeyboardInterrupt):
@@ -54,25 +59,45 @@ def start_ray(run: RunConfig) -> None:
         ray.init(num_cpus=os.cpu_count() or 2, include_dashboard=False, log_to_driver=False)
 
 
-def check_resources(run: RunConfig) -> None:
-    """Fail fast, in one line, when the run asks for more than the Ray cluster has (Ray would wait)."""
-    import ray
-
-    have = ray.cluster_resources()
+def missing_resources(run: RunConfig, have: dict[str, float]) -> str | None:
+    """What the run asks for beyond ``have`` (Ray's cluster resources), as a one-line error; None if it fits."""
     res = run.resources
     gpus = res.num_gpus_per_learner
     cpus = res.num_rollout_actors * res.cpus_per_rollout_actor + (1 if gpus == 0 else 0)
     if gpus > have.get("GPU", 0):
-        raise ConfigError(f"resources.num_gpus_per_learner: {gpus:g} GPU asked, the Ray cluster has "
-                          f"{have.get('GPU', 0):g}; allowed here: 0 (the learner then runs on CPU)")
+        return (f"resources.num_gpus_per_learner: {gpus:g} GPU asked, the Ray cluster has {have.get('GPU', 0):g}; "
+                "allowed here: 0 (the learner then runs on CPU)")
     if cpus > have.get("CPU", 0):
-        raise ConfigError(f"resources.num_rollout_actors: {res.num_rollout_actors} actors x "
-                          f"{res.cpus_per_rollout_actor:g} CPU + the learner need {cpus:g} CPUs, the Ray cluster has "
-                          f"{have.get('CPU', 0):g}; lower num_rollout_actors or cpus_per_rollout_actor")
+        return (f"resources.num_rollout_actors: {res.num_rollout_actors} actors x {res.cpus_per_rollout_actor:g} CPU "
+                f"+ the learner need {cpus:g} CPUs, the Ray cluster has {have.get('CPU', 0):g}; "
+                "lower num_rollout_actors or cpus_per_rollout_actor")
+    return None
+
+
+def check_resources(run: RunConfig, joined: bool = False) -> None:
+    """Fail fast, in one line, when the run asks for more than the Ray cluster has (Ray would wait
+    for ever). On a cluster the run joined, nodes may still be joining: wait up to
+    ``resources.wait_for_resources_s`` first."""
+    import ray
+
+    deadline = time.monotonic() + (run.resources.wait_for_resources_s if joined else 0.0)
+    while (missing := missing_resources(run, ray.cluster_resources())) is not None:
+        if time.monotonic() >= deadline:
+            waited = f" (after waiting {run.resources.wait_for_resources_s:g} s)" if joined else ""
+            raise ConfigError(missing + waited)
+        time.sleep(min(0.5, max(0.0, deadline - time.monotonic())))
 
 
 def checkpoint_path(out: Path) -> Path:
     return out / CHECKPOINT
+
+
+def recover_checkpoint(out: Path) -> None:
+    """After a crash between the two renames of ``save_checkpoint``, the previous checkpoint is
+    ``checkpoint.old``: put it back. A half-written ``checkpoint.writing`` is never used."""
+    final, old = checkpoint_path(out), out / f"{CHECKPOINT}.old"
+    if not final.exists() and old.is_dir():
+        old.rename(final)
 
 
 def save_checkpoint(algo, out: Path) -> Path:
@@ -111,9 +136,27 @@ class Progress:
 
 
 def train(config_path: str | None, out: str | None, resume: bool = False, overrides: dict | None = None,
-          quiet: bool = False) -> dict:
-    """Train; returns the final greedy evaluation summary. Bad input raises ConfigError before Ray starts."""
-    out_dir = Path(out) if out else Path("runs") / (Path(config_path).stem if config_path else "run")
+          quiet: bool = False, on_iteration: Callable[[Any, dict], None] | None = None) -> dict:
+    """Train; returns the final greedy evaluation summary. Bad input raises ConfigError before Ray starts.
+
+    ``out`` is a local folder or a storage URI (``formation.storage``). ``on_iteration(algo, row)``
+    is called after every iteration with the metrics row just written (for tools that watch a run)."""
+    remote = None
+    if out is not None and is_uri(out):  # train in a local staging folder, copy it up as it goes
+        remote = RemoteRun(str(out))
+        if resume and not remote.has_checkpoint():
+            raise ConfigError(f"--resume: no checkpoint to resume in {out!r} (expected {out.rstrip('/')}/"
+                              f"{CHECKPOINT}); train without --resume first")
+        out_dir = remote.pull() if resume else remote.local
+        if not resume:
+            if remote.has_checkpoint():
+                raise ConfigError(f"--out: {out!r} already holds a run; use --resume to continue it "
+                                  "or choose another --out")
+            remote.check_writable()
+            shutil.rmtree(out_dir, ignore_errors=True)
+    else:
+        out_dir = Path(out) if out else Path("runs") / (Path(config_path).stem if config_path else "run")
+    recover_checkpoint(out_dir)
     if resume:
         saved = out_dir / "config.yaml"
         if not checkpoint_path(out_dir).is_dir() or not saved.is_file():
@@ -149,6 +192,14 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
 
     writer = SummaryWriter(str(out_dir / "tb"))
     metrics_file = (out_dir / "metrics.jsonl").open("a")
+
+    def save(algo) -> None:
+        save_checkpoint(algo, out_dir)
+        if remote is not None:
+            metrics_file.flush()
+            writer.flush()
+            remote.push()
+
     progress = Progress(run.train.total_env_steps)
     iteration = 0
     started, at_start = time.perf_counter(), dict(algo.counters)
@@ -165,35 +216,38 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
             if not quiet:
                 progress.show(int(row["env_steps"]), algo.last_eval.get("success"), row["env_steps_per_s"])
             if iteration % run.checkpoint.every_iterations == 0:
-                save_checkpoint(algo, out_dir)
+                save(algo)
+            if on_iteration is not None:
+                on_iteration(algo, row)
         final = algo.play_greedy(record=run.eval.gif_episodes)
         summary = algo.last_eval = final["summary"]
-        save_checkpoint(algo, out_dir)
         gif = write_episodes_gif(out_dir / "greedy.gif", final["screens"]) if final["screens"] else None
+        (out_dir / "result.json").write_text(json.dumps({"env_steps": algo.counters["env_steps"],
+                                                         "greedy": summary}, indent=2))
+        save(algo)
     except KeyboardInterrupt:  # Ctrl-C, or SIGTERM (Stop)
-        save_checkpoint(algo, out_dir)
-        print(f"\nstopped: checkpoint saved in {checkpoint_path(out_dir)}; continue with --resume", file=sys.stderr)
+        save(algo)
+        where = out if remote is not None else checkpoint_path(out_dir)
+        print(f"\nstopped: checkpoint saved in {where}; continue with --resume", file=sys.stderr)
         raise
     finally:
         signal.signal(signal.SIGTERM, previous_handler)
         metrics_file.close()
         writer.close()
         algo.stop()
-    (out_dir / "result.json").write_text(json.dumps({"env_steps": algo.counters["env_steps"],
-                                                     "greedy": summary}, indent=2))
     if not quiet:
         progress.show(algo.counters["env_steps"], summary["success"], 0.0, final=True)
         print(f"greedy success {summary['success']:.1%} on {summary['episodes']} held-out scenarios; "
-              f"run folder {out_dir}")
+              f"run folder {out if remote is not None else out_dir}")
         if gif is not None:
-            print(f"greedy episodes: {gif}")
+            print(f"greedy episodes: {f'{out}/{gif.name}' if remote is not None else gif}")
     return summary
 
 
 def _start(run: RunConfig, out_dir: Path, resume: bool):
     """Start (or join) Ray and build the algorithm, fresh or from the run's checkpoint."""
     start_ray(run)
-    check_resources(run)
+    check_resources(run, joined=bool(os.environ.get("RAY_ADDRESS")))
     from ray.rllib.algorithms.algorithm import Algorithm
 
     from formation.learn.algorithm import build_algorithm_config
@@ -214,6 +268,9 @@ def _metrics_row(algo, result: dict, started: float, at_start: dict) -> dict[str
            "env_steps_per_s": (c["env_steps"] - at_start["env_steps"]) / elapsed,
            "learner_updates_per_s": (c["updates"] - at_start["updates"]) / elapsed,
            "seconds": elapsed, "training_iteration": result.get("training_iteration", 0)}
+    for key in FAULT_COUNTERS:  # the formation path's failure record (docs/FAULTS.md)
+        if key in c:
+            row[f"faults/{key}"] = c[key]
     row.update({f"explore/{k}": v for k, v in flatten(result.get("explore", {})).items()})
     row.update({f"greedy/{k}": v for k, v in flatten(algo.last_eval).items()})
     learner = result.get("learners", {})

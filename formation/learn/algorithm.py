@@ -258,10 +258,13 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
                                            seed=run.train.seed + i, prioritized=run.train.prioritized)
                         for i in range(run.resources.num_replay_shards)]
         # driver_bytes: pickled size of all that rollout actors and the learner returned to the driver
+        # updates_skipped: what the replay ratio owed while a restarted replay refilled (never run)
         self.counters = {"env_steps": 0, "updates": 0, "episodes": 0, "weights_pushed_at": 0, "driver_bytes": 0,
-                         "next_eval_at": run.eval.every_env_steps}
+                         "next_eval_at": run.eval.every_env_steps, "updates_skipped": 0,
+                         "rollout_actor_restarts": 0, "replay_restarts": 0}
         self.last_eval: dict = {}
         self._replay_ready = False
+        self._incarnations: dict[int, str] = {}  # of each replay shard, as the learner last saw it
         self._started = time.perf_counter()
         self._share_replays()
 
@@ -281,6 +284,7 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
     def restore_env_runners(self, env_runner_group):
         restored = super().restore_env_runners(env_runner_group)
         if restored:  # a restarted actor is a fresh process: hand it the replay and the weights again
+            self.counters["rollout_actor_restarts"] += len(restored)
             self._share_replays(restored)
             self._push_weights(restored)
         return restored
@@ -300,24 +304,32 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         steps_per_request = t.steps_per_sample * self.run.resources.games_per_actor
         updates_per_call = max(1, min(64, int(round(t.replay_ratio * steps_per_request))))
         learning = self._learning_ready()
+        if not learning and c["updates"] > 0:
+            # a replay restarted empty: the updates owed while it refills are skipped, not run later on
+            # a replay of a few records
+            c["updates_skipped"] = max(c["updates_skipped"], int(t.replay_ratio * c["env_steps"]) - c["updates"])
         # Sampling runs ahead of the learner by at most one call of updates plus one request per
         # actor, counting the steps of requests still in flight, so the ratio holds at any load.
         in_flight = self.env_runner_group.num_in_flight_async_reqs(tag="sample") * steps_per_request
-        owed_ahead = t.replay_ratio * (c["env_steps"] + in_flight) - c["updates"]
+        owed_ahead = t.replay_ratio * (c["env_steps"] + in_flight) - c["updates"] - c["updates_skipped"]
         if not learning or owed_ahead < updates_per_call:
             self.env_runner_group.foreach_env_runner_async("sample", tag="sample")
         for _, result in self.env_runner_group.fetch_ready_async_reqs(tags="sample", timeout_seconds=0.01):
             c["env_steps"] += result["env_steps"]
             c["driver_bytes"] += len(pickle.dumps(result))
             self._log_episodes(result["episodes"])
-        owed = t.replay_ratio * c["env_steps"] - c["updates"]
+        owed = t.replay_ratio * c["env_steps"] - c["updates"] - c["updates_skipped"]
         if learning and owed >= 1:
-            n = int(min(owed, updates_per_call))
+            n, need = int(min(owed, updates_per_call)), self._min_records()
             results = [r.get() for r in self.learner_group.foreach_learner(
-                lambda learner, n=n: learner.pull_and_update(n))]
+                lambda learner, n=n, need=need: learner.pull_and_update(n, need))]
             c["driver_bytes"] += len(pickle.dumps(results))
-            self.metrics.aggregate(results, key=LEARNER_RESULTS)
-            c["updates"] += n
+            self.metrics.aggregate([r["metrics"] for r in results], key=LEARNER_RESULTS)
+            for r in results:
+                c["updates"] += r["updates"]
+                self._note_incarnations(r["incarnations"])
+                if r["updates"] < n:  # a replay restarted and holds too few records: wait for the refill
+                    self._replay_ready = False
             if c["updates"] - c["weights_pushed_at"] >= t.weights_every_updates:
                 self._push_weights()
                 c["weights_pushed_at"] = c["updates"]
@@ -328,11 +340,21 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
             c["next_eval_at"] += self.run.eval.every_env_steps
         self._log_counters()
 
+    def _min_records(self) -> int:
+        return max(self.run.train.learning_starts, self.run.train.batch_size)
+
     def _learning_ready(self) -> bool:
         if not self._replay_ready:
-            need = max(self.run.train.learning_starts, self.run.train.batch_size)
-            self._replay_ready = all(ray.get([r.ready.remote(need) for r in self.replays]))
+            self._replay_ready = all(ray.get([r.ready.remote(self._min_records()) for r in self.replays]))
         return self._replay_ready
+
+    def _note_incarnations(self, seen: dict[int, str]) -> None:
+        """Count replay restarts; after one, learning waits until that replay is refilled."""
+        for index, incarnation in seen.items():
+            before = self._incarnations.get(index)
+            if before is not None and before != incarnation:
+                self.counters["replay_restarts"] += 1
+            self._incarnations[index] = incarnation
 
     def _log_episodes(self, episodes: list[dict]) -> None:
         m = self.metrics

@@ -127,8 +127,12 @@ class ResourceSettings:
     cpus_per_rollout_actor: float = 1.0
     num_gpus_per_learner: float = 0.0
     num_replay_shards: int = 1
+    # on a Ray cluster that the run joins (`ray job submit`): how long to wait for the asked
+    # resources to join (worker nodes still starting) before failing; a local Ray never waits
+    wait_for_resources_s: float = 120.0
 
     def __post_init__(self) -> None:
+        _number(self, "wait_for_resources_s", 0.0, 3600.0, section="resources")
         _integer(self, "num_rollout_actors", 0, section="resources")
         _integer(self, "games_per_actor", 1, section="resources")
         _integer(self, "num_replay_shards", 1, section="resources")

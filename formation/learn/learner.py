@@ -115,20 +115,27 @@ class FormationLearner(DQNTorchLearner):
                                   "td_abs_mean": td.detach().abs().mean().item()}
         return loss
 
-    def _request(self, batch_size: int, n_step: int, gamma: float):
-        replay = self._replays[self._turn % len(self._replays)]
+    def _request(self, batch_size: int, n_step: int, gamma: float, min_records: int):
+        index = self._turn % len(self._replays)
         self._turn += 1
-        return replay, replay.sample.remote(batch_size, n_step, gamma)
+        return index, self._replays[index].sample.remote(batch_size, n_step, gamma, min_records)
 
-    def pull_and_update(self, num_updates: int) -> dict:
-        """Run ``num_updates`` updates on batches pulled from the replay; return reduced metrics."""
+    def pull_and_update(self, num_updates: int, min_records: int = 1) -> dict:
+        """Run up to ``num_updates`` updates on batches pulled from the replay. Returns the reduced
+        ``metrics``, the ``updates`` run, and the ``incarnations`` of the replays seen (index ->
+        id). It stops early when a replay holds fewer than ``min_records`` (it restarted empty)."""
         cfg = self.config
+        done, seen = 0, {}
         for _ in range(num_updates):
             if self._prefetch is None:
-                self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma)
-            replay, ref = self._prefetch
+                self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma, min_records)
+            index, ref = self._prefetch
             sample = ray.get(ref)
-            self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma)
+            self._prefetch = None
+            if sample is None:  # the replay is refilling after a restart
+                break
+            self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma, min_records)
+            incarnation = seen[index] = sample.pop("incarnation")
             batches = module_batches(sample, self._module_of_agent)
             n = len(sample["ids"])
             batch = MultiAgentBatch({m: SampleBatch(b) for m, b in batches.items()}, env_steps=n)
@@ -136,13 +143,14 @@ class FormationLearner(DQNTorchLearner):
             self.update(batch=batch, timesteps={NUM_ENV_STEPS_SAMPLED_LIFETIME: self.num_updates},
                         _no_metrics_reduce=True)
             self.num_updates += 1
+            done += 1
             for module_id, stats in self._stats.items():
                 for key, value in stats.items():
                     self.metrics.log_value((module_id, key), value, window=1)
             if cfg.prioritized:
                 priority = np.stack([self._priority[m].reshape(-1, n).max(0) for m in batches]).max(0)
-                replay.update_priorities.remote(sample["ids"], priority)
-        return self.metrics.reduce()
+                self._replays[index].update_priorities.remote(sample["ids"], priority, incarnation)
+        return {"metrics": self.metrics.reduce(), "updates": done, "incarnations": seen}
 
     def get_state(self, components=None, *, not_components=None, **kwargs):
         state = super().get_state(components, not_components=not_components, **kwargs)

@@ -1,32 +1,46 @@
-"""The shared replay as a Ray actor: rollout actors push records, the learner pulls batches."""
+"""The shared replay as a Ray actor: rollout actors push records, the learner pulls batches.
+
+If its process dies, Ray starts it again (``max_restarts=-1``) with the same arguments and an empty
+replay, and retries the calls that were in flight (``max_task_retries=-1``), so no caller sees the
+failure. Every start has a new ``incarnation``: a batch carries it, the learner notices the change,
+learning pauses until the rollout actors have refilled the replay, and priorities computed on the
+lost records are dropped.
+"""
 
 from __future__ import annotations
+
+import uuid
 
 import ray
 
 from formation.learn.replay import Chunk, FrameReplay
 
 
-@ray.remote(num_cpus=0, max_restarts=-1)
+@ray.remote(num_cpus=0, max_restarts=-1, max_task_retries=-1)
 class ReplayActor:
     def __init__(self, capacity: int, frame_shape, n_agents: int, frame_stack: int, seed: int = 0,
                  prioritized: bool = False):
         self.replay = FrameReplay(capacity, frame_shape, n_agents, frame_stack, seed=seed, prioritized=prioritized)
         self.env_steps = 0  # agent steps pushed (records that are not terminal records)
+        self.incarnation = uuid.uuid4().hex  # a new one after every restart: the records are gone
 
     def add(self, chunk: Chunk) -> int:
         self.replay.add(chunk)
         self.env_steps += int((~chunk.terminal).sum())
         return self.env_steps
 
-    def sample(self, batch_size: int, n_step: int, gamma: float) -> dict:
-        return self.replay.sample(batch_size, n_step=n_step, gamma=gamma)
+    def sample(self, batch_size: int, n_step: int, gamma: float, min_records: int = 1) -> dict | None:
+        """A batch (with this replay's ``incarnation``), or None while it holds fewer than ``min_records``."""
+        if self.replay.size < max(min_records, 1):
+            return None
+        return {**self.replay.sample(batch_size, n_step=n_step, gamma=gamma), "incarnation": self.incarnation}
 
-    def update_priorities(self, ids, td_errors) -> None:
-        self.replay.update_priorities(ids, td_errors)
+    def update_priorities(self, ids, td_errors, incarnation: str | None = None) -> None:
+        if incarnation is None or incarnation == self.incarnation:  # else: the records died with a restart
+            self.replay.update_priorities(ids, td_errors)
 
     def stats(self) -> dict:
-        return {**self.replay.stats(), "replay_env_steps": self.env_steps}
+        return {**self.replay.stats(), "replay_env_steps": self.env_steps, "incarnation": self.incarnation}
 
     def ready(self, min_records: int) -> bool:
         return self.replay.size >= min_records

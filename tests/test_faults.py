@@ -1,0 +1,132 @@
+"""Failures during `formation train` (docs/FAULTS.md): a rollout actor or the replay actor whose
+process dies mid-run, and a driver killed outright.
+
+The actors are killed as a crash kills them: SIGKILL to their process, found by actor id."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+ray = pytest.importorskip("ray")
+
+from formation.train import recover_checkpoint, train  # noqa: E402
+
+SMOKE = "configs/smoke.yaml"
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+def rollout_actors(algo) -> dict[int, tuple[int, str]]:
+    """worker index -> (process id, actor id) of every rollout actor."""
+    found = algo.env_runner_group.foreach_env_runner(
+        lambda runner: (runner.worker_index, os.getpid(), ray.get_runtime_context().get_actor_id()),
+        local_env_runner=False)
+    return {index: (pid, actor_id) for index, pid, actor_id in found}
+
+
+def replay_process(algo) -> tuple[int, str]:
+    return ray.get(algo.replays[0].__ray_call__.remote(
+        lambda replay: (os.getpid(), ray.get_runtime_context().get_actor_id())))
+
+
+def last_row(out) -> dict:
+    return json.loads((out / "metrics.jsonl").read_text().splitlines()[-1])
+
+
+def test_a_killed_rollout_actor_is_restarted_and_the_run_finishes(cluster, tmp_path):
+    out = tmp_path / "run"
+    seen: dict = {}
+
+    def kill_one_actor(algo, row):
+        if "killed" not in seen and row["env_steps"] >= 800:
+            index, (pid, actor_id) = sorted(rollout_actors(algo).items())[0]
+            seen["killed"] = (index, pid, actor_id)
+            os.kill(pid, signal.SIGKILL)
+        seen["actors"] = rollout_actors(algo)  # the last iteration's actors
+        seen["healthy"] = algo.env_runner_group.healthy_worker_ids()
+
+    summary = train(SMOKE, str(out), overrides={"train.total_env_steps": 3000}, quiet=True,
+                    on_iteration=kill_one_actor)
+    index, pid, actor_id = seen["killed"]
+    row = last_row(out)
+    assert row["env_steps"] >= 3000 and summary["episodes"] == 50
+    assert row["faults/rollout_actor_restarts"] >= 1
+    assert sorted(seen["healthy"]) == [1, 2]  # both actors sample again
+    new_pid, new_actor_id = seen["actors"][index]
+    assert new_actor_id == actor_id and new_pid != pid  # Ray restarted the same actor in a new process
+
+
+def test_a_killed_replay_actor_is_restarted_refilled_and_the_run_finishes(cluster, tmp_path):
+    out = tmp_path / "run"
+    seen: dict = {}
+
+    def kill_the_replay(algo, row):
+        if "killed" not in seen and row["learner_updates"] > 0 and row["env_steps"] >= 1200:
+            seen["killed"] = replay_process(algo)
+            seen["updates_at_kill"] = algo.counters["updates"]
+            os.kill(seen["killed"][0], signal.SIGKILL)
+        seen["replay"] = algo.replay_stats()[0]
+        seen["process"] = replay_process(algo)
+
+    train(SMOKE, str(out), overrides={"train.total_env_steps": 3500, "train.prioritized": True}, quiet=True,
+          on_iteration=kill_the_replay)
+    row = last_row(out)
+    assert row["env_steps"] >= 3500
+    assert row["faults/replay_restarts"] == 1
+    # learning paused while the new replay refilled: what the ratio owed then was skipped ...
+    assert row["faults/updates_skipped"] > 0
+    # ... and went on after it
+    assert row["learner_updates"] > seen["updates_at_kill"] + 50
+    assert seen["process"][1] == seen["killed"][1] and seen["process"][0] != seen["killed"][0]
+    assert seen["replay"]["replay_env_steps"] < row["env_steps"]  # the new replay holds only what came after
+    assert seen["replay"]["replay_records"] >= 500  # refilled to learning_starts at least
+
+
+def test_a_killed_driver_leaves_a_checkpoint_that_resume_continues(tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "formation.cli", "train", SMOKE, "--out", str(out),
+           "--set", "train.total_env_steps=1000000"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
+    try:
+        deadline = time.monotonic() + 240
+        while not (out / "checkpoint" / "algorithm_state.pkl").is_file():
+            assert proc.poll() is None and time.monotonic() < deadline, "training did not start"
+            time.sleep(0.5)
+        time.sleep(3)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)  # the driver and the local Ray it started: no chance to save
+        proc.wait(timeout=60)
+    steps_logged = len((out / "metrics.jsonl").read_text().splitlines())
+    assert steps_logged > 0
+    resumed = subprocess.run([sys.executable, "-m", "formation.cli", "train", "--out", str(out), "--resume",
+                              "--set", "train.total_env_steps=2500"], capture_output=True, text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    result = json.loads((out / "result.json").read_text())
+    assert result["env_steps"] >= 2500
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    # the resumed run starts from the checkpoint's counters, not from zero
+    first_resumed = rows[steps_logged]
+    assert first_resumed["env_steps"] > 300
+
+
+def test_a_save_cut_between_its_renames_is_recovered(tmp_path):
+    """save_checkpoint renames checkpoint -> checkpoint.old, then checkpoint.writing -> checkpoint:
+    a crash between the two leaves the old one, which the next start puts back."""
+    (tmp_path / "checkpoint.old").mkdir()
+    (tmp_path / "checkpoint.old" / "algorithm_state.pkl").write_text("old")
+    (tmp_path / "checkpoint.writing").mkdir()  # maybe half written: never used
+    recover_checkpoint(tmp_path)
+    assert (tmp_path / "checkpoint" / "algorithm_state.pkl").read_text() == "old"
+    recover_checkpoint(tmp_path)  # nothing to do the second time
+    assert (tmp_path / "checkpoint").is_dir()
