@@ -9,7 +9,7 @@ from typing import Any
 
 import yaml
 
-from formation.config import ConfigError, GameConfig
+from formation.config import ConfigError, GameConfig, RunFailed
 
 CHECKPOINT_HELP = "a run folder (or its storage URI), its checkpoint/ folder, or a `formation export` folder"
 
@@ -202,6 +202,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         print(f"formation: error: {err}", file=sys.stderr)
         return 2
+    except RunFailed as err:
+        print(f"formation: run failed: {err}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("formation: interrupted", file=sys.stderr)
         return 130

@@ -28,6 +28,10 @@ class ConfigError(ValueError):
     """A bad configuration or scenario value; the message is one line naming the field."""
 
 
+class RunFailed(RuntimeError):
+    """A run that cannot go on (its learner died); the message is one line saying what is kept."""
+
+
 def _fail(field_name: str, message: str) -> None:
     raise ConfigError(f"{field_name}: {message}")
 

@@ -23,7 +23,7 @@ from typing import Any
 
 import yaml
 
-from formation.config import ConfigError
+from formation.config import ConfigError, RunFailed
 from formation.learn.config import RunConfig
 from formation.pictures import write_episodes_gif
 from formation.storage import RemoteRun, is_uri
@@ -225,6 +225,9 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         (out_dir / "result.json").write_text(json.dumps({"env_steps": algo.counters["env_steps"],
                                                          "greedy": summary}, indent=2))
         save(algo)
+    except RunFailed as err:  # nothing left to save: the last checkpoint stays as it was
+        where = out if remote is not None else checkpoint_path(out_dir)
+        raise RunFailed(f"{err}; the last checkpoint, {where}, is kept: continue with --resume") from None
     except KeyboardInterrupt:  # Ctrl-C, or SIGTERM (Stop)
         save(algo)
         where = out if remote is not None else checkpoint_path(out_dir)

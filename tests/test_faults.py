@@ -1,5 +1,5 @@
-"""Failures during `formation train` (docs/FAULTS.md): a rollout actor or the replay actor whose
-process dies mid-run, and a driver killed outright.
+"""Failures during `formation train` (docs/FAULTS.md): a rollout actor, the replay actor or the
+learner whose process dies mid-run, and a driver killed outright.
 
 The actors are killed as a crash kills them: SIGKILL to their process, found by actor id."""
 
@@ -14,6 +14,7 @@ import pytest
 
 ray = pytest.importorskip("ray")
 
+from formation.config import RunFailed  # noqa: E402
 from formation.train import recover_checkpoint, train  # noqa: E402
 
 SMOKE = "configs/smoke.yaml"
@@ -90,6 +91,27 @@ def test_a_killed_replay_actor_is_restarted_refilled_and_the_run_finishes(cluste
     assert seen["process"][1] == seen["killed"][1] and seen["process"][0] != seen["killed"][0]
     assert seen["replay"]["replay_env_steps"] < row["env_steps"]  # the new replay holds only what came after
     assert seen["replay"]["replay_records"] >= 500  # refilled to learning_starts at least
+
+
+def test_a_killed_learner_stops_the_run_in_one_line_and_keeps_the_last_checkpoint(cluster, tmp_path):
+    out = tmp_path / "run"
+    seen: dict = {}
+
+    def kill_the_learner(algo, row):
+        saved = out / "checkpoint" / "algorithm_state.pkl"
+        if "killed" not in seen and saved.is_file() and row["learner_updates"] > 0:
+            seen["saved"] = saved.stat().st_mtime_ns
+            pid, = [r.get() for r in algo.learner_group.foreach_learner(lambda learner: os.getpid())]
+            seen["killed"] = pid
+            os.kill(pid, signal.SIGKILL)
+
+    with pytest.raises(RunFailed) as err:
+        train(SMOKE, str(out), overrides={"train.total_env_steps": 100_000}, quiet=True,
+              on_iteration=kill_the_learner)
+    message = str(err.value)
+    assert message.startswith("the learner died (") and "\n" not in message
+    assert message.endswith(f"the last checkpoint, {out / 'checkpoint'}, is kept: continue with --resume")
+    assert (out / "checkpoint" / "algorithm_state.pkl").stat().st_mtime_ns == seen["saved"]
 
 
 def test_a_killed_driver_leaves_a_checkpoint_that_resume_continues(tmp_path):

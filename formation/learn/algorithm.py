@@ -33,6 +33,7 @@ from ray.rllib.utils.metrics import (
     WEIGHTS_SEQ_NO,
 )
 
+from formation.config import RunFailed
 from formation.evaluate import play_greedy
 from formation.game.render import GRID_PLANES
 from formation.learn.config import RunConfig
@@ -190,6 +191,19 @@ def build_formation_config(run: RunConfig) -> FormationDQNConfig:
     return config
 
 
+def learner_values(results) -> list:
+    """The values of a ``foreach_learner`` call; a learner that died stops the run in one line (RLlib
+    does not restart learners, and its weights since the last checkpoint died with it)."""
+    values = []
+    for result in results:
+        if not result.ok:
+            error = result.get()
+            first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+            raise RunFailed(f"the learner died ({type(error).__name__}: {first[:160]})")
+        values.append(result.get())
+    return values
+
+
 class GreedyEvaluationMixin:
     """What both paths share: counters, greedy evaluation, and their place in checkpoints."""
 
@@ -215,9 +229,9 @@ class GreedyEvaluationMixin:
 
     def local_modules(self) -> dict:
         """CPU copies of the learner's current modules."""
-        weights = self.learner_group.foreach_learner(
+        weights, = learner_values(self.learner_group.foreach_learner(
             lambda learner: learner.get_state(components=COMPONENT_RL_MODULE, inference_only=True)
-            [COMPONENT_RL_MODULE]).result_or_errors[0].get()
+            [COMPONENT_RL_MODULE]))
         multi = MultiRLModuleSpec(rl_module_specs=module_specs(self.run, inference_only=True)).build()
         multi.set_state(weights)
         return {m: multi[m] for m in multi.keys()}
@@ -290,9 +304,9 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         return restored
 
     def _push_weights(self, runner_ids=None) -> None:
-        ref, seq = self.learner_group.foreach_learner(
+        (ref, seq), = learner_values(self.learner_group.foreach_learner(
             lambda learner: (ray.put(learner.get_state(components=COMPONENT_RL_MODULE, inference_only=True)
-                                     [COMPONENT_RL_MODULE]), learner._weights_seq_no)).result_or_errors[0].get()
+                                     [COMPONENT_RL_MODULE]), learner._weights_seq_no)))
         state = {COMPONENT_RL_MODULE: ref, WEIGHTS_SEQ_NO: seq,
                  NUM_ENV_STEPS_SAMPLED_LIFETIME: self.counters["env_steps"]}
         self.env_runner_group.foreach_env_runner("set_state", kwargs={"state": state}, remote_worker_ids=runner_ids,
@@ -321,8 +335,8 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         owed = t.replay_ratio * c["env_steps"] - c["updates"] - c["updates_skipped"]
         if learning and owed >= 1:
             n, need = int(min(owed, updates_per_call)), self._min_records()
-            results = [r.get() for r in self.learner_group.foreach_learner(
-                lambda learner, n=n, need=need: learner.pull_and_update(n, need))]
+            results = learner_values(self.learner_group.foreach_learner(
+                lambda learner, n=n, need=need: learner.pull_and_update(n, need)))
             c["driver_bytes"] += len(pickle.dumps(results))
             self.metrics.aggregate([r["metrics"] for r in results], key=LEARNER_RESULTS)
             for r in results:
