@@ -111,6 +111,18 @@ def test_ray_job_submit_trains_on_a_cluster_and_the_checkpoint_evaluates(head, t
     assert f"Job '{job}' succeeded" in status.stdout + status.stderr, logs.stdout[-3000:]
     assert "greedy success" in logs.stdout
 
+    # a job that asks for more than the cluster has fails fast, in one line, instead of waiting
+    done = submit(address, env, "formation", "train", "configs/smoke.yaml", "--out", f"{out}-gpu",
+                  "--set", "resources.num_gpus_per_learner=1", "--set", "resources.wait_for_resources_s=2")
+    assert done.returncode == 0, done.stderr[-2000:]
+    asking = re.search(r"raysubmit_\w+", done.stdout + done.stderr).group(0)
+    logs = ray_cli("job", "logs", "--address", address, "--follow", asking, env=env, timeout=200)
+    status = ray_cli("job", "status", "--address", address, asking, env=env)
+    assert f"Job '{asking}' failed" in status.stdout + status.stderr
+    assert ("formation: error: resources.num_gpus_per_learner: 1 GPU asked, the Ray cluster has 0; "
+            "allowed here: 0 (the learner then runs on CPU) (after waiting 2 s)") in logs.stdout
+    assert "Traceback" not in logs.stdout
+
     stored = tmp_path / "storage" / "smoke"
     assert (stored / "checkpoint" / "algorithm_state.pkl").is_file()
     assert not (stored / "checkpoint.writing").exists()
