@@ -72,7 +72,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from formation.storage import local_run_folder
 
     policy = load(local_run_folder(args.checkpoint))
-    out = export(policy, args.dir)
+    out = export(policy, args.dir, half=args.half)
     print(f"exported {', '.join(sorted(policy.networks))} from {args.checkpoint} to {out} ({CARD})")
     return 0
 
@@ -183,6 +183,8 @@ def build_parser() -> argparse.ArgumentParser:
     export = sub.add_parser("export", help="write a checkpoint's networks and a policy card for torch alone")
     export.add_argument("checkpoint", help="a run folder or its checkpoint/ folder (or an export)")
     export.add_argument("dir", help="output folder: <module>.pt and policy.json")
+    export.add_argument("--half", action="store_true",
+                        help="store the weights as float16: half the size; evaluate the export itself")
     export.set_defaults(run=cmd_export)
 
     render = sub.add_parser("render", help="draw a trained policy's episodes, paths, Q-values and training curves")

@@ -144,15 +144,23 @@ class Policy:
                 "eval": dict(self.eval_settings)}
 
 
-def export(policy: Policy, out: str | Path) -> Path:
-    """Write ``<module>.pt`` (each q_network's state dict) and ``policy.json`` into ``out``."""
+def export(policy: Policy, out: str | Path, half: bool = False) -> Path:
+    """Write ``<module>.pt`` (each q_network's state dict) and ``policy.json`` into ``out``.
+
+    ``half`` stores the weights as float16, half the size (loading turns them back to float32):
+    Q-values then differ from the checkpoint's in the third significant digit or so, and a greedy
+    action only where two actions' Q-values are that close. Evaluate the export itself."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise PolicyError(f"export: {str(out)!r} exists and is not a folder")
     out.mkdir(parents=True, exist_ok=True)
     for module, net in sorted(policy.networks.items()):
-        torch.save(net.state_dict(), out / f"{module}.pt")
-    (out / CARD).write_text(json.dumps(policy.card(), indent=2) + "\n")
+        state = net.state_dict()
+        if half:
+            state = {k: v.half() if v.is_floating_point() else v for k, v in state.items()}
+        torch.save(state, out / f"{module}.pt")
+    card = {**policy.card(), "weights_dtype": "float16" if half else "float32"}
+    (out / CARD).write_text(json.dumps(card, indent=2) + "\n")
     return out
 
 

@@ -83,6 +83,32 @@ def test_run_folder_and_export_give_the_same_actions_on_pettingzoo_observations(
     assert compared >= 3
 
 
+def test_a_half_precision_export_is_half_the_size_and_acts_alike(run_dir, export_dir, tmp_path):
+    half_dir = tmp_path / "half"
+    assert main(["export", str(run_dir), str(half_dir), "--half"]) == 0
+    assert json.loads((half_dir / "policy.json").read_text())["weights_dtype"] == "float16"
+    for module in ("leader", "follower"):
+        full, half = (export_dir / f"{module}.pt").stat().st_size, (half_dir / f"{module}.pt").stat().st_size
+        assert half < 0.6 * full
+    exported, halved = load(export_dir), load(half_dir)
+    env = parallel_env(**exported.env_config)
+    screens = []
+    for seed in range(20):
+        obs, _ = env.reset(seed=seed)
+        for _ in range(5):
+            screens.append(obs["leader"])
+            obs, _, term, trunc, _ = env.step(exported.act(obs))
+            if any(term.values()) or any(trunc.values()):
+                break
+    batch = np.stack(screens)
+    for module in ("leader", "follower"):
+        q, q_half = exported.q_values(batch, module), halved.q_values(batch, module)
+        assert q_half.dtype == q.dtype and not np.array_equal(q, q_half)  # really rounded
+        np.testing.assert_allclose(q_half, q, rtol=1e-2, atol=1e-2)
+    agree = (exported.act_batch(batch) == halved.act_batch(batch)).mean()
+    assert agree >= 0.95, agree
+
+
 def test_the_planner_replayed_has_no_optimality_gap_and_earns_the_best_return():
     config = RunConfig.load(SMOKE).game
     n, seed = 24, 1_000_000
