@@ -36,6 +36,7 @@ from formation.learn.qnet import DuelingQNetwork
 FORMAT_VERSION = 1
 CARD = "policy.json"
 RL_MODULES = Path("checkpoint") / "learner_group" / "learner" / "rl_module"
+CHECKPOINT_STATE = Path("checkpoint") / "algorithm_state.pkl"  # the counters, among RLlib's own state
 DEFAULT_EVAL = {"episodes": 200, "seed": 1_000_000}
 
 
@@ -229,7 +230,15 @@ def _load_run(run_dir: Path) -> Policy:
 
 
 def _env_steps(run_dir: Path) -> int | None:
-    """Env steps of the run: result.json's, else the last metrics line's."""
+    """Env steps of the run's checkpoint (its saved counters); else result.json's, else the last
+    metrics line's. result.json is written when a run ends, so after a resumed run was stopped it
+    is older than the checkpoint."""
+    try:
+        with (run_dir / CHECKPOINT_STATE).open("rb") as f:
+            return int(pickle.load(f)["formation_counters"]["env_steps"])
+    except (OSError, pickle.UnpicklingError, EOFError, KeyError, TypeError, ValueError, AttributeError,
+            ImportError):
+        pass
     try:
         return int(json.loads((run_dir / "result.json").read_text())["env_steps"])
     except (OSError, ValueError, KeyError, TypeError):

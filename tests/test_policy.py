@@ -83,6 +83,16 @@ def test_run_folder_and_export_give_the_same_actions_on_pettingzoo_observations(
     assert compared >= 3
 
 
+def test_env_steps_come_from_the_checkpoint_even_when_result_json_is_older(run_dir, tmp_path):
+    """A resumed run stopped by Ctrl-C or SIGTERM saves a checkpoint but no new result.json."""
+    copy = tmp_path / "run"
+    shutil.copytree(run_dir, copy)
+    trained = load(run_dir).env_steps
+    assert trained == json.loads((run_dir / "result.json").read_text())["env_steps"]
+    (copy / "result.json").write_text(json.dumps({"env_steps": 5, "greedy": {}}))
+    assert load(copy).env_steps == trained
+
+
 def test_a_half_precision_export_is_half_the_size_and_acts_alike(run_dir, export_dir, tmp_path):
     half_dir = tmp_path / "half"
     assert main(["export", str(run_dir), str(half_dir), "--half"]) == 0
