@@ -102,3 +102,12 @@ def smoke_run(tmp_path_factory):
     done = run_cli("train", "configs/smoke.yaml", "--out", str(out))
     assert done.returncode == 0, done.stderr[-3000:]
     return out
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """A small local Ray (2 CPUs, no dashboard) for one test module, shut down after it."""
+    ray = pytest.importorskip("ray")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()

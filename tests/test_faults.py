@@ -20,13 +20,6 @@ from formation.train import recover_checkpoint, train  # noqa: E402
 SMOKE = "configs/smoke.yaml"
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield
-    ray.shutdown()
-
-
 def rollout_actors(algo) -> dict[int, tuple[int, str]]:
     """worker index -> (process id, actor id) of every rollout actor."""
     found = algo.env_runner_group.foreach_env_runner(

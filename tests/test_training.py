@@ -14,13 +14,6 @@ from formation.learn.config import RunConfig  # noqa: E402
 SMOKE = "configs/smoke.yaml"
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield
-    ray.shutdown()
-
-
 def build(actors: int, **train):
     from formation.learn.algorithm import build_algorithm_config
 
