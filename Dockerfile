@@ -1,7 +1,7 @@
 # formation on the official Ray image of the Ray version we pin (pyproject.toml).
 #   docker build -t formation:cpu .
 #   docker build --build-arg VARIANT=gpu -t formation:gpu .
-#   docker run --rm formation:cpu formation train configs/smoke.yaml --out /tmp/smoke
+#   docker run --rm formation:cpu formation evaluate policies/setting1 --episodes 100
 # Clusters use them as cluster/README.md shows (push them to your registry first).
 ARG RAY_VERSION=2.60.0
 ARG VARIANT=cpu
@@ -21,5 +21,6 @@ WORKDIR /home/ray/formation
 COPY --chown=ray:users pyproject.toml README.md ./
 COPY --chown=ray:users formation ./formation
 COPY --chown=ray:users configs ./configs
+COPY --chown=ray:users policies ./policies
 # the package and what it adds to the image (Ray and numpy are there already); `formation` goes on the PATH
 RUN pip install --no-cache-dir . && formation --help > /dev/null

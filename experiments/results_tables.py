@@ -32,7 +32,8 @@ def row(name: str, r: dict, hours: float | None) -> str:
     cells = [name, f"{r['env_steps']:,}", time,
              f"**{pct(r['success'])}** ({pct(low)}-{pct(high)})",
              pct(r["leader_collision"]), pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]),
-             f"{r['steps_success_mean']:.2f} / {p['planner_steps_on_successes_mean']:.2f}",
+             f"{r['steps_success_mean']:.2f} / {p['planner_steps_on_successes_mean']:.2f}"
+             if r["steps_success_mean"] is not None else f"none / {p['planner_steps_mean']:.2f}",
              f"{ours['leader']:.1f} / {follower:.1f}",
              f"{paper[0]:.1f} / {paper[1]:.1f} ({paper[0] / paper[2]:.3f} / {paper[1] / paper[3]:.3f})"
              if paper else "n/a",

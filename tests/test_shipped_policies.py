@@ -1,0 +1,30 @@
+"""The trained policies shipped in policies/ load from a fresh clone, play their own setting from
+pixels, and still reach what docs/RESULTS.md reports (within sampling noise of a short check)."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from formation.evaluate import play_greedy
+from formation.policy import load
+
+REPO = Path(__file__).resolve().parent.parent
+SEED = 2_000_000  # docs/RESULTS.md evaluates from here: scenarios no training run used
+EPISODES = 100
+
+
+@pytest.mark.parametrize("setting", [1, 2, 3, 4])
+def test_a_shipped_policy_plays_its_setting_from_pixels_as_reported(setting):
+    folder = REPO / "policies" / f"setting{setting}"
+    policy = load(folder)
+    assert policy.game.setting == setting
+    assert policy.game.obs_type == "pixels" and policy.game.frame_stack == 4
+    assert sum(f.stat().st_size for f in folder.iterdir()) < 4_000_000  # a few MB at most
+    reported = json.loads((REPO / "docs" / "results" / f"setting{setting}.json").read_text())
+    assert reported["episodes"] == 1000 and reported["env_steps"] == policy.env_steps
+    summary = play_greedy(policy.game, policy.act_batch, EPISODES, SEED)["summary"]
+    # the first 100 of the 1000 reported scenarios: far above chance (random play: 0%), and
+    # within about three standard errors of the reported rate
+    p = reported["success"]
+    assert summary["success"] >= max(0.3, p - 3 * (p * (1 - p) / EPISODES) ** 0.5 - 0.01), (summary, p)
