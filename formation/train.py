@@ -157,6 +157,7 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
     else:
         out_dir = Path(out) if out else Path("runs") / (Path(config_path).stem if config_path else "run")
     recover_checkpoint(out_dir)
+    kept_in = out if remote is not None else checkpoint_path(out_dir)  # where users find the checkpoint
     if resume:
         saved = out_dir / "config.yaml"
         if not checkpoint_path(out_dir).is_dir() or not saved.is_file():
@@ -226,12 +227,10 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
                                                          "greedy": summary}, indent=2))
         save(algo)
     except RunFailed as err:  # nothing left to save: the last checkpoint stays as it was
-        where = out if remote is not None else checkpoint_path(out_dir)
-        raise RunFailed(f"{err}; the last checkpoint, {where}, is kept: continue with --resume") from None
+        raise RunFailed(f"{err}; the last checkpoint, {kept_in}, is kept: continue with --resume") from None
     except KeyboardInterrupt:  # Ctrl-C, or SIGTERM (Stop)
         save(algo)
-        where = out if remote is not None else checkpoint_path(out_dir)
-        print(f"\nstopped: checkpoint saved in {where}; continue with --resume", file=sys.stderr)
+        print(f"\nstopped: checkpoint saved in {kept_in}; continue with --resume", file=sys.stderr)
         raise
     finally:
         signal.signal(signal.SIGTERM, previous_handler)
