@@ -181,7 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.set_defaults(run=cmd_evaluate)
 
     export = sub.add_parser("export", help="write a checkpoint's networks and a policy card for torch alone")
-    export.add_argument("checkpoint", help="a run folder or its checkpoint/ folder (or an export)")
+    export.add_argument("checkpoint", help=CHECKPOINT_HELP)
     export.add_argument("dir", help="output folder: <module>.pt and policy.json")
     export.add_argument("--half", action="store_true",
                         help="store the weights as float16: half the size; evaluate the export itself")

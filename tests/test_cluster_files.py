@@ -10,7 +10,7 @@ from pathlib import Path
 
 import yaml
 
-from formation.cli import build_parser
+from formation.cli import build_parser, parse_overrides
 from formation.learn.config import RunConfig
 from formation.storage import is_uri
 
@@ -27,9 +27,10 @@ def dockerfile_images() -> set[str]:
     return set(re.findall(r"docker build .*-t (\S+) \.", (REPO / "Dockerfile").read_text()))
 
 
-def check_train_command(command: str) -> None:
+def check_train_command(command: str) -> RunConfig | None:
     """A `formation train` command line: our parser accepts it, its config exists in the repo (under the
-    image's WORKDIR) and loads with its --set overrides, and --out is a storage URI."""
+    image's WORKDIR) and loads with its --set overrides, and --out is a storage URI. Returns that
+    config (None for a --resume, which reads the run's own)."""
     words = shlex.split(command)
     assert words[0] == "formation"
     args = build_parser().parse_args(words[1:])
@@ -37,15 +38,13 @@ def check_train_command(command: str) -> None:
     assert is_uri(args.out), "a cluster run writes to storage that outlives it"
     if args.resume:  # the run's own config.yaml, at --out
         assert args.config is None
-        return
+        return None
     config = Path(args.config)
     if config.is_absolute():
         assert str(config).startswith(IMAGE_DIR + "/"), config
         config = Path(str(config)[len(IMAGE_DIR) + 1:])
     assert (REPO / config).is_file(), f"{config} is not in the repo"
-    from formation.cli import parse_overrides
-
-    RunConfig.load(REPO / config, parse_overrides(args.set))
+    return RunConfig.load(REPO / config, parse_overrides(args.set))
 
 
 def test_the_dockerfile_builds_on_the_pinned_ray_image_and_copies_what_exists():
@@ -63,7 +62,7 @@ def test_the_rayjob_runs_formation_train_on_a_gpu_learner_and_cpu_rollout_worker
     job = yaml.safe_load((REPO / "cluster" / "rayjob.yaml").read_text())
     assert (job["apiVersion"], job["kind"]) == ("ray.io/v1", "RayJob")
     spec = job["spec"]
-    check_train_command(spec["entrypoint"])
+    run = check_train_command(spec["entrypoint"])
     cluster = spec["rayClusterSpec"]
     assert cluster["rayVersion"] == pinned_ray_version()
     pods = [("head", cluster["headGroupSpec"]["template"])]
@@ -83,10 +82,6 @@ def test_the_rayjob_runs_formation_train_on_a_gpu_learner_and_cpu_rollout_worker
     gpu_image = cluster["workerGroupSpecs"][0]["template"]["spec"]["containers"][0]["image"]
     assert gpu_image == "formation:gpu"
     # what the entrypoint asks for fits the worker groups (else the run fails fast on the cluster)
-    args = build_parser().parse_args(shlex.split(spec["entrypoint"])[1:])
-    from formation.cli import parse_overrides
-
-    run = RunConfig.load(REPO / "configs" / Path(args.config).name, parse_overrides(args.set))
     cpus = sum(int(g["replicas"]) * int(g["template"]["spec"]["containers"][0]["resources"]["limits"]["cpu"])
                for g in cluster["workerGroupSpecs"])
     assert run.resources.num_rollout_actors * run.resources.cpus_per_rollout_actor <= cpus
