@@ -29,7 +29,9 @@ from formation.pictures import write_episodes_gif
 from formation.storage import RemoteRun, is_uri
 
 CHECKPOINT = "checkpoint"
-RESUMABLE = {"train.total_env_steps"}  # what --set may change when resuming
+# what --set may change when resuming: how long to train, and a fine-tuning phase (a lower lr, and a
+# replay refilled to learning_starts records before the first update, as it starts empty)
+RESUMABLE = {"train.total_env_steps", "train.lr", "train.learning_starts"}
 FAULT_COUNTERS = ("rollout_actor_restarts", "replay_restarts", "updates_skipped")
 
 
@@ -250,13 +252,12 @@ def _start(run: RunConfig, out_dir: Path, resume: bool):
     """Start (or join) Ray and build the algorithm, fresh or from the run's checkpoint."""
     start_ray(run)
     check_resources(run, joined=bool(os.environ.get("RAY_ADDRESS")))
-    from ray.rllib.algorithms.algorithm import Algorithm
-
     from formation.learn.algorithm import build_algorithm_config
 
-    if resume:
-        return Algorithm.from_checkpoint(str(checkpoint_path(out_dir).resolve()))
-    return build_algorithm_config(run).build_algo()
+    algo = build_algorithm_config(run).build_algo()
+    if resume:  # built from today's config (its resumable overrides), then the checkpoint's state
+        algo.restore_from_path(str(checkpoint_path(out_dir).resolve()))
+    return algo
 
 
 def _raise_stop(signum, frame):
@@ -278,7 +279,8 @@ def _metrics_row(algo, result: dict, started: float, at_start: dict) -> dict[str
     learner = result.get("learners", {})
     for module, values in learner.items():
         if isinstance(values, dict):
-            for key in ("q_mean", "td_abs_mean", "total_loss"):
+            for key, name in (("q_mean", "q_mean"), ("td_abs_mean", "td_abs_mean"), ("total_loss", "total_loss"),
+                              ("default_optimizer_learning_rate", "lr")):
                 if key in values:
-                    row[f"learner/{module}/{key}"] = float(values[key])
+                    row[f"learner/{module}/{name}"] = float(values[key])
     return row

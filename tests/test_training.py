@@ -76,12 +76,20 @@ def test_train_writes_a_checkpoint_and_resume_continues(cluster, tmp_path):
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     first_run_steps = rows[-1]["env_steps"]
     assert first_run_steps >= 3000
-    train(None, str(out), resume=True, overrides={"train.total_env_steps": first_run_steps + 1000}, quiet=True)
+    assert rows[-1]["learner/leader/lr"] == pytest.approx(1e-3)
+    skipped_before = rows[-1]["faults/updates_skipped"]
+    # a fine-tuning phase: a lower lr, and learning once the emptied replay holds 1200 records (smoke: 500)
+    train(None, str(out), resume=True, quiet=True, overrides={
+        "train.total_env_steps": first_run_steps + 2000, "train.lr": 2e-4, "train.learning_starts": 1200})
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     resumed = rows[len(rows) - 1]
     later = [r for r in rows if r["env_steps"] > first_run_steps]
     assert later and later[0]["learner_updates"] > 0.9 * 0.125 * first_run_steps  # counters carried on
-    assert resumed["env_steps"] >= first_run_steps + 1000
+    assert resumed["learner/leader/lr"] == pytest.approx(2e-4)  # not the optimizer state's saved lr
+    assert resumed["learner/follower/lr"] == pytest.approx(2e-4)
+    assert resumed["env_steps"] >= first_run_steps + 2000
+    # the updates owed while the replay refilled to 1200 records were skipped, not run later
+    assert resumed["faults/updates_skipped"] - skipped_before >= 0.125 * 1100
     result = json.loads((out / "result.json").read_text())
     assert result["env_steps"] == resumed["env_steps"]
 
@@ -91,6 +99,12 @@ def test_resume_without_checkpoint_and_bad_config_are_one_line_errors(tmp_path):
 
     with pytest.raises(ConfigError, match="no checkpoint to resume"):
         train(None, str(tmp_path / "none"), resume=True)
+    run = tmp_path / "run"
+    (run / "checkpoint").mkdir(parents=True)
+    (run / "config.yaml").write_text("game: {}\n")
+    with pytest.raises(ConfigError, match=r"^--resume: --set train\.gamma would change the run being resumed; "
+                                          r"allowed: train\.learning_starts, train\.lr, train\.total_env_steps$"):
+        train(None, str(run), resume=True, overrides={"train.gamma": 0.9, "train.lr": 1e-4})
     with pytest.raises(ConfigError, match=r"^train\.gama: unknown key"):
         train(SMOKE, str(tmp_path / "bad"), overrides={"train.gama": 0.5})
 
