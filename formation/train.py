@@ -33,6 +33,9 @@ CHECKPOINT = "checkpoint"
 # replay refilled to learning_starts records before the first update, as it starts empty)
 RESUMABLE = {"train.total_env_steps", "train.lr", "train.learning_starts"}
 FAULT_COUNTERS = ("rollout_actor_restarts", "replay_restarts", "updates_skipped")
+# each module's learner results in metrics.jsonl, as learner/<module>/<name>
+LEARNER_METRICS = {"q_mean": "q_mean", "td_abs_mean": "td_abs_mean", "total_loss": "total_loss",
+                   "default_optimizer_learning_rate": "lr"}
 
 
 class Stop(KeyboardInterrupt):
@@ -279,8 +282,7 @@ def _metrics_row(algo, result: dict, started: float, at_start: dict) -> dict[str
     learner = result.get("learners", {})
     for module, values in learner.items():
         if isinstance(values, dict):
-            for key, name in (("q_mean", "q_mean"), ("td_abs_mean", "td_abs_mean"), ("total_loss", "total_loss"),
-                              ("default_optimizer_learning_rate", "lr")):
+            for key, name in LEARNER_METRICS.items():
                 if key in values:
                     row[f"learner/{module}/{name}"] = float(values[key])
     return row
