@@ -3,8 +3,8 @@
     .venv/bin/python experiments/results_tables.py
 
 Each report is `formation evaluate <policy> --episodes 1000 --seed 2000000 --json docs/results/<name>.json`;
-the training time comes from the run folder's metrics.jsonl (experiments/training_time.py), given
-below per report as it was measured."""
+each report's training hours are in docs/results/training_hours.json, as experiments/training_time.py
+measured them from the run folder's metrics.jsonl."""
 
 from __future__ import annotations
 
