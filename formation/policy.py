@@ -54,24 +54,26 @@ class NetworkSpec:
     channels: tuple[int, int, int]
     window: tuple[int, int, int] | None = None
     frame_channels: int | None = None
+    cells: tuple[int, int] | None = None  # a screen read one pixel per cell of this board
 
     def build(self) -> DuelingQNetwork:
         return DuelingQNetwork(self.obs_shape, high=self.high, hidden=self.hidden, channels=self.channels,
-                               window=self.window, frame_channels=self.frame_channels)
+                               window=self.window, frame_channels=self.frame_channels, cells=self.cells)
 
     def to_dict(self) -> dict[str, Any]:
         return {"obs_shape": list(self.obs_shape), "high": self.high, "hidden": self.hidden,
                 "channels": list(self.channels), "window": list(self.window) if self.window is not None else None,
-                "frame_channels": self.frame_channels}
+                "frame_channels": self.frame_channels, "cells": list(self.cells) if self.cells is not None else None}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> NetworkSpec:
         window = values.get("window")
-        frame_channels = values.get("frame_channels")
+        frame_channels, cells = values.get("frame_channels"), values.get("cells")
         return cls(obs_shape=tuple(int(v) for v in values["obs_shape"]), high=float(values["high"]),
                    hidden=int(values["hidden"]), channels=tuple(int(v) for v in values["channels"]),
                    window=tuple(int(v) for v in window) if window is not None else None,
-                   frame_channels=int(frame_channels) if frame_channels is not None else None)
+                   frame_channels=int(frame_channels) if frame_channels is not None else None,
+                   cells=tuple(int(v) for v in cells) if cells is not None else None)
 
 
 class Policy:
@@ -197,7 +199,8 @@ def run_specs(run) -> tuple[dict[str, NetworkSpec], list[str]]:
     spec = NetworkSpec(obs_shape=shape, high=float(obs_space.high.max()), hidden=int(run.train.hidden),
                        channels=tuple(int(c) for c in run.train.channels),
                        window=tuple(int(v) for v in window) if window is not None else None,
-                       frame_channels=extra.get("frame_channels"))
+                       frame_channels=extra.get("frame_channels"),
+                       cells=tuple(extra["cells"]) if "cells" in extra else None)
     agent_modules = module_of_agent(run)
     return {m: spec for m in sorted(set(agent_modules))}, agent_modules
 

@@ -189,3 +189,26 @@ def test_a_truncated_checkpoint_module_or_a_foreign_card_is_one_line(run_dir, ex
     (bad_card / "policy.json").write_text(json.dumps(card))
     line = _one_line_error(capfd, main(["evaluate", str(bad_card)]))
     assert "leader.pt" in line and "does not fit" in line
+
+
+def test_an_export_of_networks_that_read_screens_per_cell_loads_them_alike(tmp_path):
+    import torch
+
+    from formation.policy import Policy, export, run_specs
+
+    run = RunConfig.from_dict({"game": {"setting": 3, "obs_type": "pixels", "frame_stack": 2},
+                               "train": {"screen_cells": True, "channels": [4, 8, 8], "hidden": 16}})
+    specs, agent_modules = run_specs(run)
+    assert {spec.cells for spec in specs.values()} == {(50, 50)}
+    torch.manual_seed(0)
+    policy = Policy(run.game, {m: spec.build() for m, spec in specs.items()}, specs, agent_modules, source="test")
+    folder = export(policy, tmp_path / "cells")
+    card = json.loads((folder / "policy.json").read_text())
+    assert [net["cells"] for net in card["networks"].values()] == [[50, 50]] * len(specs)
+    again = load(folder)
+    env = parallel_env(**again.env_config)
+    observations, _ = env.reset(seed=7)
+    for module in specs:
+        obs = np.stack([observations[a] for a in observations])
+        assert np.array_equal(policy.q_values(obs, module), again.q_values(obs, module))
+    assert again.act(observations) == policy.act(observations)

@@ -93,3 +93,73 @@ def test_leader_window_finds_the_leader_on_rendered_screens():
     assert torch.equal(crop[:, up - 1, side, 3:6], torch.zeros(4, 3))
     assert torch.equal(crop[:, up, side - 1, 3:6], torch.zeros(4, 3))
     assert net(obs).shape == (4, 4)
+
+
+def _colours_of_grid(grid):
+    """The screen's colour of every cell from the grid planes, drawn in the screen's order."""
+    from formation.game.render import BLUE, GREEN, RED, WHITE
+    out = torch.zeros(*grid.shape[:-1], 3, dtype=torch.uint8)
+    for plane, colour in enumerate((WHITE, RED, GREEN, BLUE)):
+        out[torch.from_numpy(grid[..., plane] > 0)] = torch.tensor(colour, dtype=torch.uint8)
+    return out
+
+
+def test_screen_cells_reads_every_cell_of_rendered_screens_without_loss():
+    import numpy as np
+
+    from formation.config import GameConfig
+    from formation.game import BatchedGame
+    from formation.game.render import GridRenderer, ScreenRenderer
+    from formation.learn.qnet import ScreenCells
+
+    for setting in (1, 3):  # 3.36 and 1.68 pixels a cell
+        cfg = GameConfig.from_setting(setting)
+        game = BatchedGame(cfg, 6, seed=setting)
+        game.reset()
+        screens, grids = ScreenRenderer(game), GridRenderer(game)
+        reader = ScreenCells((84, 84, 3), (cfg.height, cfg.width))
+        actions = np.random.default_rng(0)
+        for _ in range(4):
+            cells = reader(torch.from_numpy(screens.render().copy()))
+            assert cells.shape == (6, cfg.height, cfg.width, 3) and cells.dtype == torch.uint8
+            assert torch.equal(cells, _colours_of_grid(grids.render()))
+            game.step(actions.integers(0, 4, (6, game.n_agents)))
+
+
+def test_a_screen_read_per_cell_has_its_window_in_cells_with_the_leader_at_the_fixed_place():
+    from formation.config import GameConfig
+    from formation.game import BatchedGame, Observer
+    from formation.learn.algorithm import leader_window_config
+    from formation.learn.config import RunConfig
+
+    run = RunConfig.from_dict({"game": {"setting": 3, "obs_type": "pixels", "frame_stack": 2},
+                               "train": {"leader_window": [2, 1, 3], "screen_cells": True}})
+    cfg = leader_window_config(run, (84, 84, 6))
+    assert cfg == {"window": [2, 1, 3], "frame_channels": 3, "cells": [50, 50]}
+    from formation.learn.algorithm import module_specs
+    for spec in module_specs(run).values():  # the RLlib modules training builds read cells too
+        assert spec.build().q_network.cells.out_shape == (50, 50, 6)
+    game = BatchedGame(GameConfig.from_setting(3, obs_type="pixels", frame_stack=2), 4, seed=5)
+    game.reset()
+    obs = torch.from_numpy(Observer(game).observe(torch.ones(4, dtype=torch.bool).numpy()).copy())
+    net = DuelingQNetwork((84, 84, 6), 255, window=(2, 1, 3), frame_channels=3, cells=(50, 50))
+    crop = net.window(net.cells(obs))
+    assert crop.shape == (4, 2 + 1 + 1, 2 * 3 + 1, 7)
+    # one entry per cell: the leader's cell at (2, 3)
+    assert torch.equal(crop[:, 2, 3, 3:6], torch.tensor([[0.0, 0.0, 255.0]] * 4))
+    leader = torch.from_numpy(game.positions[:, 0])
+    # the window's cell (i, j) is the board's cell (leader row - 2 + i, leader column - 3 + j)
+    board = net.cells(obs)[..., 3:6]
+    for g in range(4):
+        r, c = int(leader[g, 0]), int(leader[g, 1])
+        for i in range(4):
+            for j in range(7):
+                rr, cc = r - 2 + i, c - 3 + j
+                inside = 0 <= rr < 50 and 0 <= cc < 50
+                assert crop[g, i, j, 6] == float(inside)
+                if inside:
+                    assert torch.equal(crop[g, i, j, 3:6], board[g, rr, cc].float())
+    assert net(obs).shape == (4, 4)
+    # without a window the network reads the whole board, one entry per cell
+    whole = DuelingQNetwork((84, 84, 6), 255, cells=(50, 50))
+    assert whole.cells(obs).shape == (4, 50, 50, 6) and whole(obs).shape == (4, 4)

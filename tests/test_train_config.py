@@ -44,6 +44,7 @@ def test_yaml_and_dotted_overrides(tmp_path):
     ({"game": {"obs_type": "rgb"}}, "game.obs_type"),
     ({"train": {"label_order": "random"}}, "train.label_order"),
     ({"train": {"robust_first_step": "yes"}}, "train.robust_first_step"),
+    ({"train": {"screen_cells": "yes"}}, "train.screen_cells"),
     ({"train": {"margin_gap": -1}}, "train.margin_gap"),
     ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),
     ({"train": {"leader_window": [1, 2, -3]}}, "train.leader_window"),

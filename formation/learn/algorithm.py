@@ -101,14 +101,19 @@ def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLMo
 
 
 def leader_window_config(run: RunConfig, obs_shape: tuple[int, ...]) -> dict[str, Any]:
-    """``train.leader_window`` (in cells) as the module's ``window`` (in entries of the observation:
-    cells of a grid, pixels of a screen) and ``frame_channels``; empty without a window."""
+    """``train.leader_window`` (in cells) as the module's ``window`` (in entries of what the network
+    reads: cells of a grid or of a screen read per cell, pixels of a screen) and ``frame_channels``;
+    ``train.screen_cells`` as ``cells``, the board's height and width."""
+    per_cell = run.game.obs_type == "pixels" and run.train.screen_cells
+    cells = {"cells": [run.game.height, run.game.width]} if per_cell else {}
     window = run.train.leader_window
     if window is None:
-        return {}
+        return cells
     up, down, side = window
     if run.game.obs_type == "grid":
         return {"window": [up, down, side], "frame_channels": len(GRID_PLANES)}
+    if per_cell:
+        return {"window": [up, down, side], "frame_channels": 3, **cells}
     rows, cols = obs_shape[0] / run.game.height, obs_shape[1] / run.game.width  # pixels per cell
     # the leader's block of pixels starts at its top-left pixel: the window reaches one cell further down and right
     return {"window": [math.ceil(up * rows), math.ceil((down + 1) * rows), math.ceil((side + 1) * cols)],

@@ -71,6 +71,10 @@ class TrainSettings:
     # the Q-networks look through a window that follows the leader: cells above it, below it, and either
     # side (formation.learn.qnet.LeaderWindow); null: the whole screen, as the paper's networks
     leader_window: tuple[int, int, int] | None = (12, 3, 10)
+    # pixels only: the Q-networks read one pixel per cell of the board from each screen (the renderer paints a
+    # whole cell in one colour, so nothing is lost; formation.learn.qnet.ScreenCells), then every cell;
+    # false: the screen in 4x4-pixel patches
+    screen_cells: bool = False
     grad_clip: float = 10.0
     total_env_steps: int = 300_000
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
@@ -96,7 +100,7 @@ class TrainSettings:
             _integer(self, name, 1)
         _integer(self, "learning_starts", 0)
         _integer(self, "seed", 0)
-        for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step"):
+        for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:

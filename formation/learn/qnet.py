@@ -8,12 +8,19 @@ With a ``LeaderWindow`` the network first shifts every frame of the stack so tha
 at a fixed place and keeps a window around it (the board's edge marked by a plane of its own):
 what is near the leader then lands on the same inputs wherever the team is, and a rule learnt in
 one place holds in every other (docs/TRAINING.md measures what that is worth).
+
+With a ``ScreenCells`` reader the network first takes one pixel per cell of the board from each
+screen (the renderer paints a whole cell in one colour, so nothing on the screen is lost) and
+reads the result as a grid, at one entry per cell: on settings 3-4 a cell is 1.68 pixels wide,
+and 4x4 patches would mix two or three cells.
 """
 
 from __future__ import annotations
 
 import torch
 from torch import nn
+
+from formation.game.render import cell_pixel_bounds
 
 N_ACTIONS = 4
 
@@ -59,7 +66,7 @@ class LeaderWindow(nn.Module):
     entries outside the board are 0, and the extra last plane is 1 on the board.
 
     The leader is found in the newest frame (the last ``frame_channels`` channels): on a grid its
-    own plane (the frame's last), on a screen its colour, pure blue (drawn last, so never hidden).
+    own plane (the frame's last), on a screen (or its cells) its colour, pure blue (drawn last, so never hidden).
     """
 
     def __init__(self, obs_shape: tuple[int, int, int], window: tuple[int, int, int], frame_channels: int,
@@ -95,33 +102,61 @@ class LeaderWindow(nn.Module):
         return torch.cat([crop, board[..., None].float()], dim=3)
 
 
+class ScreenCells(nn.Module):
+    """``(N, S, S, C)`` screens -> ``(N, height, width, C)``: the top-left pixel of every cell of a
+    ``height`` x ``width`` board, where the screen's cells start (``cell_pixel_bounds``, spec 'Screen')."""
+
+    def __init__(self, obs_shape: tuple[int, int, int], board: tuple[int, int]):
+        super().__init__()
+        h, w, c = obs_shape
+        height, width = board
+        if height > h or width > w:
+            raise ValueError(f"a {height}x{width} board has cells under one pixel on a {h}x{w} screen")
+        self.out_shape = (height, width, c)
+        self.register_buffer("rows", torch.as_tensor(cell_pixel_bounds(height, h)[:, 0]), persistent=False)
+        self.register_buffer("cols", torch.as_tensor(cell_pixel_bounds(width, w)[:, 0]), persistent=False)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return obs.index_select(1, self.rows).index_select(2, self.cols)
+
+
 class DuelingQNetwork(nn.Module):
     """uint8 observations -> Q-values of the four actions.
 
     ``window`` (rows above, rows below, columns either side of the leader, in entries of the
     observation): look through a ``LeaderWindow`` first; None: the whole observation as it is.
-    ``frame_channels``: channels of one frame of the stack (3 for screens, 4 for grids)."""
+    ``frame_channels``: channels of one frame of the stack (3 for screens, 4 for grids).
+    ``cells`` (board height, width), screens only: read one pixel per cell first (``ScreenCells``);
+    ``window`` is then in cells, and the encoder's first layer reads every cell."""
 
     def __init__(self, obs_shape: tuple[int, int, int], high: float = 255.0, hidden: int = 128,
                  channels: tuple[int, int, int] = (16, 32, 32), window: tuple[int, int, int] | None = None,
-                 frame_channels: int | None = None):
+                 frame_channels: int | None = None, cells: tuple[int, int] | None = None):
         super().__init__()
         self.obs_shape = tuple(obs_shape)
         screens = min(obs_shape[:2]) >= 64
         self.register_buffer("scale", torch.tensor(1.0 / high), persistent=False)
-        self.window = None
+        self.cells = None
         seen = self.obs_shape
+        if cells is not None:
+            if not screens:
+                raise ValueError(f"cells: only screens are read per cell, not {self.obs_shape} observations")
+            self.cells = ScreenCells(self.obs_shape, tuple(cells))
+            seen = self.cells.out_shape
+        self.window = None
         if window is not None:
             frame_channels = frame_channels or (3 if screens else 4)
-            self.window = LeaderWindow(self.obs_shape, tuple(window), frame_channels, screens)
+            self.window = LeaderWindow(seen, tuple(window), frame_channels, screens)
             seen = self.window.out_shape
-        self.encoder = encoder(seen, channels, screens)
+        self.encoder = encoder(seen, channels, screens and self.cells is None)
         with torch.no_grad():
             n = self.encoder(torch.zeros(1, seen[2], seen[0], seen[1])).shape[1]
         self.value = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, 1))
         self.advantage = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, N_ACTIONS))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        if self.cells is not None:
+            obs = self.cells(obs)
         x = obs.float() * self.scale if self.window is None else self.window(obs, self.scale)
         x = self.encoder(x.permute(0, 3, 1, 2))
         return dueling(self.value(x), self.advantage(x))
