@@ -78,7 +78,7 @@ def test_leader_window_finds_the_leader_on_rendered_screens():
     from formation.learn.config import RunConfig
 
     run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "pixels", "frame_stack": 2},
-                               "train": {"leader_window": [2, 1, 3]}})
+                               "train": {"leader_window": [2, 1, 3], "screen_cells": False}})
     cfg = leader_window_config(run, (84, 84, 6))
     # 3.36 pixels a cell: 2 cells above, 1 below and 3 either side, plus the leader's own cell
     assert cfg == {"window": [7, 7, 14], "frame_channels": 3}

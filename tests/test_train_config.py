@@ -81,7 +81,7 @@ def test_paper_config_is_the_papers_table_2():
         32, 50000, 0.99, 1e-4, 1.0, 0.1)
     assert t.shaping == 0 and paper.game.obs_type == "pixels" and paper.game.frame_stack == 4
     # none of our recipe: no teacher, each agent explores on its own, one-step targets
-    assert t.leader_window is None  # the paper's networks see the whole screen
+    assert t.leader_window is None and not t.screen_cells  # the paper's networks see the whole screen in patches
     assert (t.dagger, t.demonstrations, t.margin, t.exploration, t.n_step, t.prioritized) == (
         False, 0, 0, "independent", 1, False)
     assert paper.game.max_steps == 200 and paper.game.reward_reach == 50
@@ -90,10 +90,13 @@ def test_paper_config_is_the_papers_table_2():
 def test_a_saved_run_from_before_a_key_existed_keeps_what_it_trained_with(tmp_path):
     saved = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "grid"}}).to_dict()
     del saved["train"]["leader_window"]  # written before the leader window existed: whole-screen networks
+    del saved["train"]["screen_cells"]  # and before screens were read per cell: 4x4-pixel patches
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(saved))
     assert RunConfig.load_saved(path).train.leader_window is None
+    assert RunConfig.load_saved(path).train.screen_cells is False
     assert RunConfig.load(path).train.leader_window == (12, 3, 10)  # a plain config takes today's default
+    assert RunConfig.load(path).train.screen_cells is True
     saved["train"]["leader_window"] = [4, 1, 2]
     path.write_text(yaml.safe_dump(saved))
     assert RunConfig.load_saved(path).train.leader_window == (4, 1, 2)

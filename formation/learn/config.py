@@ -74,7 +74,7 @@ class TrainSettings:
     # pixels only: the Q-networks read one pixel per cell of the board from each screen (the renderer paints a
     # whole cell in one colour, so nothing is lost; formation.learn.qnet.ScreenCells), then every cell;
     # false: the screen in 4x4-pixel patches
-    screen_cells: bool = False
+    screen_cells: bool = True
     grad_clip: float = 10.0
     total_env_steps: int = 300_000
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
@@ -234,7 +234,7 @@ class RunConfig:
 
 
 # keys added to the config after runs were saved without them, with the value those runs trained with
-LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None}
+LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("train", "screen_cells"): False}
 
 
 def _read_yaml(path: str | Path) -> dict[str, Any]:
