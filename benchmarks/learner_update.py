@@ -6,7 +6,8 @@ For setting 1 from grid observations (2 stacked frames, batch 64: the quickstart
 (4 stacked screens, batch 32: the throughput benchmark), prints milliseconds per update with the
 modules one after the other (RLlib's order) and in two threads at once (``FormationLearner`` on a
 CPU); each with the whole observation and the widths of configs/paper.yaml, and with the default
-recipe's network (a leader window, wider layers). Each torch op runs on one thread, as in the
+recipe's network (a leader window, wider layers; from pixels, reading the screen one pixel per cell as
+the default does, and in 4x4-pixel patches). Each torch op runs on one thread, as in the
 learner's Ray actor. No Ray: the data path's own cost is the difference to
 ``benchmarks/train_throughput.py``.
 """
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -65,17 +67,22 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=40)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    print(f"{'observation':<28} {'batch':>5} {'one after the other':>20} {'two threads':>12} {'speed-up':>9}")
+    print(f"{'observation':<34} {'batch':>5} {'one after the other':>20} {'two threads':>12} {'speed-up':>9}")
     for obs_type, stack, batch in (("grid", 2, 64), ("pixels", 4, 32)):
         run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": obs_type, "frame_stack": stack}})
         shape = Observer(BatchedGame(run.game, batch_size=1)).shape
         widths = {"channels": run.train.channels, "hidden": run.train.hidden}  # the default recipe's
         small = {"channels": (16, 32, 32), "hidden": 128}  # configs/paper.yaml's
-        for name, window in (("", small), (", window", {**widths, **leader_window_config(run, shape)})):
+        variants = [("", small), (", window", {**widths, **leader_window_config(run, shape)})]
+        if obs_type == "pixels":  # the default reads cells; the patches it read before
+            patches = dataclasses.replace(run, train=dataclasses.replace(run.train, screen_cells=False))
+            variants = [("", small), (", window, cells", variants[1][1]),
+                        (", window, patches", {**widths, **leader_window_config(patches, shape)})]
+        for name, window in variants:
             window = {k: tuple(v) if isinstance(v, list) else v for k, v in window.items()}
             serial = ms_per_update(shape, batch, 1, args.updates, window)
             threaded = ms_per_update(shape, batch, 2, args.updates, window)
-            print(f"{obs_type + ' ' + 'x'.join(map(str, shape)) + name:<28} {batch:>5} {serial:>17.1f} ms "
+            print(f"{obs_type + ' ' + 'x'.join(map(str, shape)) + name:<34} {batch:>5} {serial:>17.1f} ms "
                   f"{threaded:>9.1f} ms {serial / threaded:>8.2f}x")
 
 
