@@ -194,13 +194,8 @@ def run_specs(run) -> tuple[dict[str, NetworkSpec], list[str]]:
 
     obs_space, _ = spaces_of(run)
     shape = tuple(int(v) for v in obs_space.shape)
-    extra = leader_window_config(run, shape)
-    window = extra.get("window")
-    spec = NetworkSpec(obs_shape=shape, high=float(obs_space.high.max()), hidden=int(run.train.hidden),
-                       channels=tuple(int(c) for c in run.train.channels),
-                       window=tuple(int(v) for v in window) if window is not None else None,
-                       frame_channels=extra.get("frame_channels"),
-                       cells=tuple(extra["cells"]) if "cells" in extra else None)
+    spec = NetworkSpec.from_dict({"obs_shape": shape, "high": float(obs_space.high.max()), "hidden": run.train.hidden,
+                                  "channels": run.train.channels, **leader_window_config(run, shape)})
     agent_modules = module_of_agent(run)
     return {m: spec for m in sorted(set(agent_modules))}, agent_modules
 
