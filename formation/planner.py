@@ -35,6 +35,7 @@ Everything is vectorised over the states of a layer with numpy.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -87,6 +88,21 @@ def shortest_first_moves(scenario: dict | Scenario, *, config: GameConfig) -> tu
         return None
     length, mask = found
     return length, [_split(j, n_agents) for j in range(N_ACTIONS ** n_agents) if (mask >> j) & 1]
+
+
+def shortest_path_counts(scenario: dict | Scenario, *,
+                         config: GameConfig) -> tuple[int, dict[tuple[int, ...], float]] | None:
+    """The length of a shortest successful path and, for every joint action that starts one, how
+    many shortest successful paths start with it; ``None`` if no path ends in success within
+    ``max_steps``. Paths are sequences of joint actions (two that visit the same states by other
+    moves count twice)."""
+    parsed = parse_scenario(scenario, config)
+    n_agents = 1 + len(parsed.followers)
+    found = _first_found(functools.partial(_search_first_moves, count=True), parsed, config)
+    if found is None:
+        return None
+    length, counts = found
+    return length, {_split(j, n_agents): float(counts[j]) for j in np.flatnonzero(counts)}
 
 
 def _first_found(search, parsed: Scenario, config: GameConfig):
@@ -201,25 +217,41 @@ def _search(board: _Board, zones: np.ndarray, start: tuple, deadline: int) -> li
     return None
 
 
-def _search_first_moves(board: _Board, zones: np.ndarray, start: tuple, deadline: int) -> tuple[int, int] | None:
+def _search_first_moves(board: _Board, zones: np.ndarray, start: tuple, deadline: int,
+                        count: bool = False) -> tuple[int, Any] | None:
     """``_search`` that keeps, for every state of a layer, the set of first joint actions of the
     paths reaching it (a bit mask, merged over duplicates): ``(length, mask)`` of the first
-    layer with a success, the mask over all successes in it."""
+    layer with a success, the mask over all successes in it. ``count``: instead of the mask, how
+    many paths reach each state by each first joint action, ``(length, counts)`` with ``counts``
+    the shortest successful paths that start with each joint action (by joint action index)."""
     layer = np.array([[r * board.width + c for r, c in start]], dtype=np.int32)
-    firsts = None  # per state of the layer: mask of first joint actions (None at the start)
+    n_joint = N_ACTIONS ** len(start)
+    firsts = None  # per state of the layer: mask (or counts) of first joint actions (None at the start)
     dedupe = _Deduplicator(board, len(start))
     for t in range(deadline):
         parent, joint, cells = _successors(board, layer, zones[t + 1], deadline - t - 1)
-        carried = (np.uint64(1) << joint.astype(np.uint64)) if firsts is None else firsts[parent]
+        if firsts is not None:
+            carried = firsts[parent]
+        elif count:
+            carried = np.zeros((len(joint), n_joint))
+            carried[np.arange(len(joint)), joint] = 1.0
+        else:
+            carried = np.uint64(1) << joint.astype(np.uint64)
         success = cells[:, 0] == board.destination
         if success.any():
+            if count:
+                return t + 1, carried[success].sum(axis=0)
             return t + 1, int(np.bitwise_or.reduce(carried[success]))
         if len(cells) == 0:
             return None
         codes = dedupe._codes(cells)
         unique, inverse = np.unique(codes, return_inverse=True)
-        firsts = np.zeros(len(unique), np.uint64)
-        np.bitwise_or.at(firsts, inverse, carried)
+        if count:
+            firsts = np.zeros((len(unique), n_joint))
+            np.add.at(firsts, inverse, carried)
+        else:
+            firsts = np.zeros(len(unique), np.uint64)
+            np.bitwise_or.at(firsts, inverse, carried)
         keep = np.zeros(len(unique), np.intp)
         keep[inverse] = np.arange(len(cells))  # one copy of each state (any: they are equal)
         layer = cells[keep]

@@ -9,7 +9,7 @@ import pytest
 from formation.config import ConfigError, GameConfig
 from formation.env import parallel_env
 from formation.game import BatchedGame, Scenario, parse_scenario
-from formation.planner import lower_bound, shortest_first_moves, shortest_path
+from formation.planner import lower_bound, shortest_first_moves, shortest_path, shortest_path_counts
 
 TINY = dict(height=7, width=7, n_obstacles=2, max_steps=14)  # small enough for the brute force
 
@@ -170,6 +170,31 @@ def test_first_moves_are_exactly_the_joint_actions_that_start_a_shortest_path():
             assert moves == expected, (setting, n_followers, seed)
             checked += 1
     assert checked >= 20
+
+
+def test_path_counts_start_where_shortest_paths_start_and_add_up_over_the_next_step():
+    """A joint action's count is the number of shortest paths left after playing it with the game
+    (1 where it wins at once), and the joint actions counted are those that start a shortest path."""
+    checked = 0
+    for setting in (1, 2):
+        for seed, scenario, config in tiny_scenarios(setting, 12, max_steps=10):
+            found, counts = shortest_first_moves(scenario, config=config), shortest_path_counts(scenario, config=config)
+            if found is None:
+                assert counts is None
+                continue
+            length, moves = found
+            assert counts[0] == length and sorted(counts[1]) == moves
+            probe = BatchedGame(config, 1)
+            for joint, count in counts[1].items():
+                probe.load([scenario])
+                probe.step(np.array([joint]))
+                if probe.done[0]:
+                    assert probe.success[0] and length == 1 and count == 1
+                    continue
+                rest = shortest_path_counts(probe.scenario(0), config=config)
+                assert rest[0] == length - 1 and sum(rest[1].values()) == count, (setting, seed, joint)
+            checked += 1
+    assert checked >= 15
 
 
 def test_needs_more_than_the_lower_bound():

@@ -9,7 +9,7 @@ import pytest
 from formation.config import GameConfig
 from formation.game import BatchedGame
 from formation.learn.teacher import Teacher, lockstep_order
-from formation.planner import shortest_first_moves, shortest_path
+from formation.planner import shortest_first_moves, shortest_path, shortest_path_counts
 
 SMALL = GameConfig.from_setting(None, height=9, width=9, n_obstacles=1)
 
@@ -75,6 +75,23 @@ def test_lockstep_labels_start_a_shortest_path_and_are_the_first_such_in_the_ord
         order = lockstep_order(2, 2 if scenario.leader[1] < SMALL.destination[1] else 1)
         earlier = order[: order.index(label)]
         assert all(steps_after(SMALL, scenario, joint) != len(path) - 1 for joint in earlier)
+        checked += 1
+    assert checked >= 15
+
+
+def test_widest_labels_start_the_most_shortest_paths_ties_by_the_lockstep_order():
+    teacher = Teacher(SMALL, slack=200, order="widest")
+    checked = 0
+    for scenario in scenarios(SMALL, range(20)):
+        found = shortest_path_counts(scenario, config=SMALL)
+        if found is None:
+            assert teacher.label(scenario) is None
+            continue
+        label, counts = teacher.label(scenario), found[1]
+        assert steps_after(SMALL, scenario, label) == found[0] - 1
+        order = lockstep_order(2, 2 if scenario.leader[1] < SMALL.destination[1] else 1)
+        assert counts[label] == max(counts.values())
+        assert all(counts.get(joint, 0) < counts[label] for joint in order[: order.index(label)])
         checked += 1
     assert checked >= 15
 

@@ -25,7 +25,7 @@ from formation.learn.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
 EXPLORATIONS = ("independent", "joint")
-LABEL_ORDERS = ("planner", "lockstep", "toward", "safe")
+LABEL_ORDERS = ("planner", "lockstep", "toward", "safe", "widest")
 
 
 @dataclass(frozen=True)
