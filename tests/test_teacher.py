@@ -79,7 +79,7 @@ def test_lockstep_labels_start_a_shortest_path_and_are_the_first_such_in_the_ord
     assert checked >= 15
 
 
-def test_widest_labels_start_the_most_shortest_paths_ties_by_the_lockstep_order():
+def test_widest_labels_start_the_most_shortest_paths_lockstep_first_ties_by_the_order():
     teacher = Teacher(SMALL, slack=200, order="widest")
     checked = 0
     for scenario in scenarios(SMALL, range(20)):
@@ -90,8 +90,10 @@ def test_widest_labels_start_the_most_shortest_paths_ties_by_the_lockstep_order(
         label, counts = teacher.label(scenario), found[1]
         assert steps_after(SMALL, scenario, label) == found[0] - 1
         order = lockstep_order(2, 2 if scenario.leader[1] < SMALL.destination[1] else 1)
-        assert counts[label] == max(counts.values())
-        assert all(counts.get(joint, 0) < counts[label] for joint in order[: order.index(label)])
+        lockstep = {joint: n for joint, n in counts.items() if joint[0] == joint[1]}
+        among = lockstep or counts
+        assert label in among and counts[label] == max(among.values())
+        assert all(among.get(joint, 0) < counts[label] for joint in order[: order.index(label)])
         checked += 1
     assert checked >= 15
 

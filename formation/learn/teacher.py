@@ -40,9 +40,10 @@ class Teacher:
     that labels follow one simple rule; ``order="toward"``: the same with the sideways move towards the
     destination's column ranked before forward. ``order="safe"``: the first joint action in
     ``lockstep_order``, those that bring the leader closer first, after which a path is left (forward unless that dooms
-    the team), a rule that depends mostly on the obstacles nearby. ``order="widest"``: the joint action
-    that starts the most shortest paths (ties by ``lockstep_order``), so that the team keeps to states
-    where many moves still lead along a shortest path. ``robust_first_step``: on an
+    the team), a rule that depends mostly on the obstacles nearby. ``order="widest"``: of the lockstep joint
+    actions that start a shortest path (of all, if none does), the one that starts the most shortest
+    paths (ties by ``lockstep_order``), so that the team keeps to states where many moves still lead
+    along a shortest path. ``robust_first_step``: on an
     episode's first step, whose screens do not show the obstacles' motion yet, the first joint
     action in ``lockstep_order`` after which a path is left for the most velocities of the
     obstacles nearest the agents, instead of the clairvoyant one.
@@ -79,11 +80,13 @@ class Teacher:
                 if k == 0 and self._path(scenario) is None:  # no path at all: nothing else will open one
                     return None
             return None
-        if self.order == "widest":  # the start of the most shortest paths; equal counts go by the order
+        if self.order == "widest":  # the start of the most shortest paths, lockstep if one starts any
             found = shortest_path_counts(scenario, config=self._capped_config(self._limit(scenario)))
             if found is None:
                 return None
-            return max(order, key=lambda joint: found[1].get(joint, 0.0))
+            counts = found[1]
+            lockstep = [joint for joint in order if len(set(joint)) == 1 and joint in counts]
+            return max(lockstep or order, key=lambda joint: counts.get(joint, 0.0))  # equal counts: by the order
         if self.order in SHORTEST_PATH_ORDERS and self.config.n_followers <= 2:  # one search finds every first move
             found = shortest_first_moves(scenario, config=self._capped_config(self._limit(scenario)))
             if found is None:
