@@ -81,8 +81,7 @@ def teacher_states(setting: int, episodes: int, window: tuple[int, int, int]) ->
 
 def first_departures(run_dir: str, episodes: int, window: tuple[int, int, int]) -> None:
     run = RunConfig.load_saved(f"{run_dir}/config.yaml")
-    t = run.train
-    teacher = Teacher(run.game, t.planner_slack, t.label_order, t.robust_first_step)
+    teacher = Teacher.of_run(run)
     probe, policy = HiddenProbe(run.game, teacher, window), load(run_dir)
     departure: dict[int, str] = {}
 

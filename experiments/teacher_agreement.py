@@ -36,8 +36,7 @@ def main() -> None:
     modules_dir = (args.run / "checkpoint" / "learner_group" / "learner" / "rl_module").resolve()
     names = module_of_agent(run)
     modules = {m: RLModule.from_checkpoint(str(modules_dir / m)) for m in sorted(set(names))}
-    t = run.train
-    teacher = Teacher(run.game, t.planner_slack, t.label_order, t.robust_first_step)
+    teacher = Teacher.of_run(run)
     agree, labelled = collections.Counter(), 0
     confusion = {name: collections.Counter() for name in run.game.agent_names}  # (label, action) when they differ
     first_off: dict[int, tuple[int, str]] = {}

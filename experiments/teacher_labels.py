@@ -27,8 +27,8 @@ def main() -> None:
     args = parser.parse_args()
     if args.config:
         run = RunConfig.load(args.config)
-        config, t = run.game, run.train
-        teacher = Teacher(config, t.planner_slack, t.label_order, t.robust_first_step)
+        config = run.game
+        teacher = Teacher.of_run(run)
         eval_seed = run.eval.seed
     else:
         config = GameConfig.from_setting(args.setting, obs_type="grid")

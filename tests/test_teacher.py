@@ -2,6 +2,7 @@
 what the first screen cannot show."""
 
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -96,6 +97,36 @@ def test_widest_labels_start_the_most_shortest_paths_lockstep_first_ties_by_the_
         assert all(among.get(joint, 0) < counts[label] for joint in order[: order.index(label)])
         checked += 1
     assert checked >= 15
+
+
+@pytest.mark.parametrize("setting", [1, 2])
+def test_tolerant_formation_labels_leave_room_for_a_slip_when_a_shortest_path_allows(setting):
+    """After a tolerant label (played with the game's own step) the formation would survive any one
+    agent one cell off, whenever a joint action that starts a shortest path allows that; the label
+    still starts a shortest path, and the spec's starts (2 cells apart in a line) get new labels."""
+    config = GameConfig.from_setting(setting, height=11, width=11, n_obstacles=2, max_steps=30)
+    teacher = Teacher(config, slack=200, order="lockstep", tolerant_formation=True)
+    plain = Teacher(config, slack=200, order="lockstep")
+
+    def roomy(scenario, joint) -> bool:
+        game = BatchedGame(config, batch_size=1)
+        game.load([scenario])
+        game.step(np.array([joint]))
+        leader, follower = (tuple(int(x) for x in cell) for cell in game.positions[0])
+        offsets = [(0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)]
+        return all(config.formation_kept(math.dist((leader[0] + a, leader[1] + b), (follower[0] + c, follower[1] + d)))
+                   for a, b in offsets for c, d in offsets if (a, b) == (0, 0) or (c, d) == (0, 0))
+
+    differs = 0
+    for scenario in scenarios(config, range(25)):
+        found = shortest_first_moves(scenario, config=config)
+        if found is None:
+            continue
+        label = teacher.label(scenario)
+        assert label in found[1]
+        assert roomy(scenario, label) == any(roomy(scenario, joint) for joint in found[1])
+        differs += label != plain.label(scenario)
+    assert differs >= 10
 
 
 def test_robust_first_step_label_is_the_same_whatever_the_hidden_velocities():

@@ -64,6 +64,8 @@ class TrainSettings:
     # DAgger labels of an episode's first step (no motion on screen yet): keep a path for the most obstacle
     # velocities instead of the clairvoyant planner's choice
     robust_first_step: bool = True
+    # labels prefer joint actions after which the formation survives any one agent's slip (formation.learn.teacher)
+    tolerant_formation: bool = False
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True
     hidden: int = 256
@@ -100,7 +102,8 @@ class TrainSettings:
             _integer(self, name, 1)
         _integer(self, "learning_starts", 0)
         _integer(self, "seed", 0)
-        for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells"):
+        for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
+                     "tolerant_formation"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:

@@ -89,7 +89,7 @@ class RolloutActor(EnvRunner, Checkpointable):
         self._rng = np.random.default_rng([t.seed, index])  # exploration
         self._demo_games = int(round(run.train.demonstrations * games))
         self._plans: dict[int, list] = {}
-        self._teacher = Teacher(run.game, t.planner_slack, t.label_order, t.robust_first_step) if t.dagger else None
+        self._teacher = Teacher.of_run(run) if t.dagger else None
         # with DAgger labels, demonstration games follow them; without, the planner's path from the start
         for i in range(0 if t.dagger else self._demo_games):
             self._plan(i)

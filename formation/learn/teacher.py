@@ -14,13 +14,14 @@ import itertools
 
 import numpy as np
 
-from formation.config import GameConfig
+from formation.config import GameConfig, formation_broken_by
 from formation.game import MOVES, BatchedGame, Scenario
 from formation.planner import lower_bound, shortest_first_moves, shortest_path, shortest_path_counts
 
 # robust first-step labels try every velocity of this many obstacles, those nearest the leader's row;
 # the others count as known (4 velocities each: trying all 3 of setting 1 costs 64 planner calls a label)
 ROBUST_OBSTACLES = 2
+SLIPS = ((-1, 0), (1, 0), (0, -1), (0, 1))  # tolerant_formation: one cell off where an agent lands
 SHORTEST_PATH_ORDERS = ("lockstep", "toward")  # orders that label with a move starting a shortest path
 
 
@@ -43,15 +44,18 @@ class Teacher:
     the team), a rule that depends mostly on the obstacles nearby. ``order="widest"``: of the lockstep joint
     actions that start a shortest path (of all, if none does), the one that starts the most shortest
     paths (ties by ``lockstep_order``), so that the team keeps to states where many moves still lead
-    along a shortest path. ``robust_first_step``: on an
-    episode's first step, whose screens do not show the obstacles' motion yet, the first joint
+    along a shortest path. ``tolerant_formation``: the joint actions after which the formation would survive
+    any one agent landing a cell off (up, down, left or right) come first in the order. ``robust_first_step``:
+    on an episode's first step, whose screens do not show the obstacles' motion yet, the first joint
     action in ``lockstep_order`` after which a path is left for the most velocities of the
     obstacles nearest the agents, instead of the clairvoyant one.
     Paths count up to the lower bound + ``slack`` steps; a state with none gets no label (None).
     """
 
-    def __init__(self, config: GameConfig, slack: int, order: str = "planner", robust_first_step: bool = False):
+    def __init__(self, config: GameConfig, slack: int, order: str = "planner", robust_first_step: bool = False,
+                 tolerant_formation: bool = False):
         self.config, self.slack, self.order, self.robust_first_step = config, slack, order, robust_first_step
+        self.tolerant_formation = tolerant_formation
         self._probe = BatchedGame(config, batch_size=1)  # plays one joint action from a scenario
         self._capped: dict[int, GameConfig] = {}
         self._robust_labels: dict[tuple, tuple[int, ...] | None] = {}
@@ -62,8 +66,16 @@ class Teacher:
         speeds = [sign * speed for speed in config.obstacle_speeds for sign in (1, -1)]
         self._velocities = list(itertools.product(speeds, repeat=min(ROBUST_OBSTACLES, config.n_obstacles)))
 
+    @classmethod
+    def of_run(cls, run) -> Teacher:
+        """The teacher of a training config (``RunConfig``): its game and ``train`` labelling settings."""
+        t = run.train
+        return cls(run.game, t.planner_slack, t.label_order, t.robust_first_step, t.tolerant_formation)
+
     def label(self, scenario: Scenario, first_step: bool = False) -> tuple[int, ...] | None:
         order = self._orders[scenario.leader[1]]
+        if self.tolerant_formation:  # first the joint actions after which one agent's slip cannot break the formation
+            order = sorted(order, key=lambda joint: not self._tolerant(scenario, joint))
         if first_step and self.robust_first_step:
             near = self._nearest_obstacles(scenario)
             seen = (scenario.leader, scenario.followers,
@@ -114,6 +126,25 @@ class Teacher:
 
         now = max(row - dest_row, abs(col - dest_col))
         return sorted(order, key=lambda joint: to_go(joint[0]) >= now)
+
+    def _tolerant(self, scenario: Scenario, joint: tuple[int, ...]) -> bool:
+        """Whether, after ``joint``, the formation would still be kept with any one agent one cell up,
+        down, left or right of where it lands: the slips a learner makes most (forward for a
+        sideways move, or for a stay) then cannot break it on their own."""
+        height, width = self.config.height, self.config.width
+        landed = []
+        for (row, col), move in zip([scenario.leader, *scenario.followers], joint):
+            d_row, d_col = MOVES[move]
+            landed.append((min(max(row + int(d_row), 0), height - 1), min(max(col + int(d_col), 0), width - 1)))
+        if formation_broken_by(self.config, landed[0], landed[1:]):
+            return False
+        for agent, (row, col) in enumerate(landed):
+            for d_row, d_col in SLIPS:
+                slipped = list(landed)
+                slipped[agent] = (row + d_row, col + d_col)
+                if formation_broken_by(self.config, slipped[0], slipped[1:]):
+                    return False
+        return True
 
     def _nearest_obstacles(self, scenario: Scenario) -> list[int]:
         """Indices of the ``ROBUST_OBSTACLES`` obstacles whose rows are nearest the leader's."""
