@@ -3,6 +3,7 @@ and compare with a random policy on the same held-out scenarios.
 
     .venv/bin/python experiments/teacher_labels.py --setting 1 --episodes 40
     .venv/bin/python experiments/teacher_labels.py --config configs/small.yaml --episodes 40
+    .venv/bin/python experiments/teacher_labels.py --setting 2 --episodes 40 --tolerant-formation
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ def main() -> None:
     parser.add_argument("--setting", type=int, default=1)
     parser.add_argument("--config", help="a training config: its game and teacher settings")
     parser.add_argument("--episodes", type=int, default=40)
+    parser.add_argument("--tolerant-formation", action="store_true", help="with --setting: train.tolerant_formation")
     args = parser.parse_args()
     if args.config:
         run = RunConfig.load(args.config)
@@ -32,7 +34,8 @@ def main() -> None:
         eval_seed = run.eval.seed
     else:
         config = GameConfig.from_setting(args.setting, obs_type="grid")
-        teacher = Teacher(config, 6, order="lockstep", robust_first_step=True)
+        teacher = Teacher(config, 6, order="lockstep", robust_first_step=True,
+                          tolerant_formation=args.tolerant_formation)
         eval_seed = RunConfig.load("configs/quickstart.yaml").eval.seed
     game = BatchedGame(config, batch_size=1)
     labels, wins, steps = collections.Counter(), 0, 0
