@@ -35,6 +35,11 @@ def steps_after(config, scenario, joint):
     return None if path is None else len(path)
 
 
+def order_at(scenario):
+    """The teacher's lockstep order for a state of SMALL (sideways towards the destination first)."""
+    return lockstep_order(2, 2 if scenario.leader[1] < SMALL.destination[1] else 1)
+
+
 @pytest.mark.parametrize("n_agents,toward", [(2, 1), (2, 2), (3, 1)])
 def test_lockstep_order_lists_every_joint_action_once_lockstep_first(n_agents, toward):
     order = lockstep_order(n_agents, toward)
@@ -73,7 +78,7 @@ def test_lockstep_labels_start_a_shortest_path_and_are_the_first_such_in_the_ord
             continue
         label = teacher.label(scenario)
         assert steps_after(SMALL, scenario, label) == len(path) - 1
-        order = lockstep_order(2, 2 if scenario.leader[1] < SMALL.destination[1] else 1)
+        order = order_at(scenario)
         earlier = order[: order.index(label)]
         assert all(steps_after(SMALL, scenario, joint) != len(path) - 1 for joint in earlier)
         checked += 1
@@ -90,7 +95,7 @@ def test_widest_labels_start_the_most_shortest_paths_lockstep_first_ties_by_the_
             continue
         label, counts = teacher.label(scenario), found[1]
         assert steps_after(SMALL, scenario, label) == found[0] - 1
-        order = lockstep_order(2, 2 if scenario.leader[1] < SMALL.destination[1] else 1)
+        order = order_at(scenario)
         lockstep = {joint: n for joint, n in counts.items() if joint[0] == joint[1]}
         among = lockstep or counts
         assert label in among and counts[label] == max(among.values())
