@@ -64,7 +64,8 @@ class TrainSettings:
     # DAgger labels of an episode's first step (no motion on screen yet): keep a path for the most obstacle
     # velocities instead of the clairvoyant planner's choice
     robust_first_step: bool = True
-    # labels prefer joint actions after which the formation survives any one agent's slip (formation.learn.teacher)
+    # labels prefer joint actions after which the formation would survive any one agent landing a cell off
+    # (up, down, left or right; formation.learn.teacher)
     tolerant_formation: bool = False
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True
