@@ -1,0 +1,40 @@
+"""Greedy success of several trained teams acting together: each agent takes the action with the
+highest Q-value averaged over the teams' networks (run folders or exports of the same game).
+
+    .venv/bin/python experiments/ensemble.py runs/s1_cells runs/s1_pix_win --episodes 1000 --seed 2000000
+
+Shows how much of a team's failures are noise that another network would not share.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from formation.evaluate import play_greedy
+from formation.policy import load
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("policies", nargs="+", help="run folders or `formation export` folders")
+    parser.add_argument("--episodes", type=int, default=1000)
+    parser.add_argument("--seed", type=int, default=2_000_000)
+    args = parser.parse_args()
+    teams = [load(path) for path in args.policies]
+    game = teams[0].game
+    if any(team.game != game for team in teams):
+        parser.error("policies: all must be trained on the same game")
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        return np.mean([team.q_batch(obs) for team in teams], axis=0).argmax(axis=-1)
+
+    summary = play_greedy(game, act, args.episodes, args.seed)["summary"]
+    print(f"{' + '.join(args.policies)}: {args.episodes} episodes (seed {args.seed})")
+    for key in ("success", "leader_collision", "follower_collision", "formation_broken", "timeout"):
+        print(f"{key:<20} {summary[key]:.1%}")
+
+
+if __name__ == "__main__":
+    main()
