@@ -120,22 +120,22 @@ class Teacher:
         (row, col), (dest_row, dest_col) = leader, self.config.destination
 
         def to_go(move: int) -> int:
-            r = min(max(row + int(MOVES[move, 0]), 0), self.config.height - 1)
-            c = min(max(col + int(MOVES[move, 1]), 0), self.config.width - 1)
+            r, c = self._landing(leader, move)
             return max(r - dest_row, abs(c - dest_col))
 
         now = max(row - dest_row, abs(col - dest_col))
         return sorted(order, key=lambda joint: to_go(joint[0]) >= now)
 
+    def _landing(self, cell: tuple[int, int], move: int) -> tuple[int, int]:
+        """The cell an agent at ``cell`` lands on with ``move`` (clamped to the board, spec rule 1)."""
+        row = min(max(cell[0] + int(MOVES[move, 0]), 0), self.config.height - 1)
+        return row, min(max(cell[1] + int(MOVES[move, 1]), 0), self.config.width - 1)
+
     def _tolerant(self, scenario: Scenario, joint: tuple[int, ...]) -> bool:
         """Whether, after ``joint``, the formation would still be kept with any one agent one cell up,
         down, left or right of where it lands: the slips a learner makes most (forward for a
         sideways move, or for a stay) then cannot break it on their own."""
-        height, width = self.config.height, self.config.width
-        landed = []
-        for (row, col), move in zip([scenario.leader, *scenario.followers], joint):
-            d_row, d_col = MOVES[move]
-            landed.append((min(max(row + int(d_row), 0), height - 1), min(max(col + int(d_col), 0), width - 1)))
+        landed = [self._landing(cell, move) for cell, move in zip([scenario.leader, *scenario.followers], joint)]
         if formation_broken_by(self.config, landed[0], landed[1:]):
             return False
         for agent, (row, col) in enumerate(landed):
