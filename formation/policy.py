@@ -55,15 +55,18 @@ class NetworkSpec:
     window: tuple[int, int, int] | None = None
     frame_channels: int | None = None
     cells: tuple[int, int] | None = None  # a screen read one pixel per cell of this board
+    forecast: bool = False  # the obstacle forecast planes (formation.learn.qnet.ObstacleForecast)
 
     def build(self) -> DuelingQNetwork:
         return DuelingQNetwork(self.obs_shape, high=self.high, hidden=self.hidden, channels=self.channels,
-                               window=self.window, frame_channels=self.frame_channels, cells=self.cells)
+                               window=self.window, frame_channels=self.frame_channels, cells=self.cells,
+                               forecast=self.forecast)
 
     def to_dict(self) -> dict[str, Any]:
         return {"obs_shape": list(self.obs_shape), "high": self.high, "hidden": self.hidden,
                 "channels": list(self.channels), "window": list(self.window) if self.window is not None else None,
-                "frame_channels": self.frame_channels, "cells": list(self.cells) if self.cells is not None else None}
+                "frame_channels": self.frame_channels, "cells": list(self.cells) if self.cells is not None else None,
+                "forecast": self.forecast}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> NetworkSpec:
@@ -73,7 +76,8 @@ class NetworkSpec:
                    hidden=int(values["hidden"]), channels=tuple(int(v) for v in values["channels"]),
                    window=tuple(int(v) for v in window) if window is not None else None,
                    frame_channels=int(frame_channels) if frame_channels is not None else None,
-                   cells=tuple(int(v) for v in cells) if cells is not None else None)
+                   cells=tuple(int(v) for v in cells) if cells is not None else None,
+                   forecast=bool(values.get("forecast", False)))
 
 
 class Policy:

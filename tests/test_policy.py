@@ -191,20 +191,24 @@ def test_a_truncated_checkpoint_module_or_a_foreign_card_is_one_line(run_dir, ex
     assert "leader.pt" in line and "does not fit" in line
 
 
-def test_an_export_of_networks_that_read_screens_per_cell_loads_them_alike(tmp_path):
+@pytest.mark.parametrize("forecast", [False, True])
+def test_an_export_of_networks_that_read_screens_per_cell_loads_them_alike(tmp_path, forecast):
     import torch
 
     from formation.policy import Policy, export, run_specs
 
     run = RunConfig.from_dict({"game": {"setting": 3, "obs_type": "pixels", "frame_stack": 2},
-                               "train": {"screen_cells": True, "channels": [4, 8, 8], "hidden": 16}})
+                               "train": {"screen_cells": True, "channels": [4, 8, 8], "hidden": 16,
+                                         "obstacle_forecast": forecast}})
     specs, agent_modules = run_specs(run)
     assert {spec.cells for spec in specs.values()} == {(50, 50)}
+    assert {spec.build().forecast is not None for spec in specs.values()} == {forecast}
     torch.manual_seed(0)
     policy = Policy(run.game, {m: spec.build() for m, spec in specs.items()}, specs, agent_modules, source="test")
     folder = export(policy, tmp_path / "cells")
     card = json.loads((folder / "policy.json").read_text())
     assert [net["cells"] for net in card["networks"].values()] == [[50, 50]] * len(specs)
+    assert [net["forecast"] for net in card["networks"].values()] == [forecast] * len(specs)
     again = load(folder)
     env = parallel_env(**again.env_config)
     observations, _ = env.reset(seed=7)

@@ -45,6 +45,9 @@ def test_yaml_and_dotted_overrides(tmp_path):
     ({"train": {"label_order": "random"}}, "train.label_order"),
     ({"train": {"robust_first_step": "yes"}}, "train.robust_first_step"),
     ({"train": {"screen_cells": "yes"}}, "train.screen_cells"),
+    ({"train": {"obstacle_forecast": "yes"}}, "train.obstacle_forecast"),
+    ({"train": {"obstacle_forecast": True, "screen_cells": False}}, "train.obstacle_forecast"),
+    ({"game": {"frame_stack": 1}, "train": {"obstacle_forecast": True}}, "train.obstacle_forecast"),
     ({"train": {"margin_gap": -1}}, "train.margin_gap"),
     ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),
     ({"train": {"leader_window": [1, 2, -3]}}, "train.leader_window"),
@@ -91,10 +94,12 @@ def test_a_saved_run_from_before_a_key_existed_keeps_what_it_trained_with(tmp_pa
     saved = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "grid"}}).to_dict()
     del saved["train"]["leader_window"]  # written before the leader window existed: whole-screen networks
     del saved["train"]["screen_cells"]  # and before screens were read per cell: 4x4-pixel patches
+    del saved["train"]["obstacle_forecast"]
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(saved))
     assert RunConfig.load_saved(path).train.leader_window is None
     assert RunConfig.load_saved(path).train.screen_cells is False
+    assert RunConfig.load_saved(path).train.obstacle_forecast is False
     assert RunConfig.load(path).train.leader_window == (12, 3, 10)  # a plain config takes today's default
     assert RunConfig.load(path).train.screen_cells is True
     saved["train"]["leader_window"] = [4, 1, 2]

@@ -103,15 +103,18 @@ def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLMo
 def leader_window_config(run: RunConfig, obs_shape: tuple[int, ...]) -> dict[str, Any]:
     """``train.leader_window`` (in cells) as the module's ``window`` (in entries of what the network
     reads: cells of a grid or of a screen read per cell, pixels of a screen) and ``frame_channels``;
-    ``train.screen_cells`` as ``cells``, the board's height and width."""
+    ``train.screen_cells`` as ``cells``, the board's height and width; ``train.obstacle_forecast`` as
+    ``forecast``."""
     per_cell = run.game.obs_type == "pixels" and run.train.screen_cells
     cells = {"cells": [run.game.height, run.game.width]} if per_cell else {}
+    if run.train.obstacle_forecast:
+        cells["forecast"] = True
     window = run.train.leader_window
     if window is None:
         return cells
     up, down, side = window
     if run.game.obs_type == "grid":
-        return {"window": [up, down, side], "frame_channels": len(GRID_PLANES)}
+        return {"window": [up, down, side], "frame_channels": len(GRID_PLANES), **cells}
     if per_cell:
         return {"window": [up, down, side], "frame_channels": 3, **cells}
     rows, cols = obs_shape[0] / run.game.height, obs_shape[1] / run.game.width  # pixels per cell

@@ -78,6 +78,11 @@ class TrainSettings:
     # whole cell in one colour, so nothing is lost; formation.learn.qnet.ScreenCells), then every cell;
     # false: the screen in 4x4-pixel patches
     screen_cells: bool = True
+    # the Q-networks also read a forecast of the obstacles: for every cell, whether an agent arriving there in
+    # lockstep with the leader (or one to three steps later) would collide, from the obstacles' motion in the
+    # last two frames and the game's rule of motion (formation.learn.qnet.ObstacleForecast; no weights).
+    # Needs grid observations or screen_cells, and frame_stack >= 2
+    obstacle_forecast: bool = False
     grad_clip: float = 10.0
     total_env_steps: int = 300_000
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
@@ -104,7 +109,7 @@ class TrainSettings:
         _integer(self, "learning_starts", 0)
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
-                     "tolerant_formation"):
+                     "tolerant_formation", "obstacle_forecast"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:
@@ -185,6 +190,15 @@ class RunConfig:
     eval: EvalSettings = field(default_factory=EvalSettings)
     checkpoint: CheckpointSettings = field(default_factory=CheckpointSettings)
 
+    def __post_init__(self) -> None:
+        if self.train.obstacle_forecast:
+            if self.game.obs_type == "pixels" and not self.train.screen_cells:
+                raise ConfigError("train.obstacle_forecast: true needs the screen read per cell; "
+                                  "allowed with train.screen_cells: true or game.obs_type: grid")
+            if self.game.frame_stack < 2:
+                raise ConfigError(f"train.obstacle_forecast: true needs two frames to see the obstacles move; "
+                                  f"allowed with game.frame_stack >= 2, not {self.game.frame_stack}")
+
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> RunConfig:
         if not isinstance(values, dict):
@@ -238,7 +252,8 @@ class RunConfig:
 
 
 # keys added to the config after runs were saved without them, with the value those runs trained with
-LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("train", "screen_cells"): False}
+LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("train", "screen_cells"): False,
+                                          ("train", "obstacle_forecast"): False}
 
 
 def _read_yaml(path: str | Path) -> dict[str, Any]:

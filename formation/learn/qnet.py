@@ -60,13 +60,24 @@ def large_margin(q: torch.Tensor, labels: torch.Tensor, gap: float) -> torch.Ten
     return (q + margins).max(1).values - q.gather(1, a_e).squeeze(1)
 
 
+def leader_entry(obs: torch.Tensor, frame_channels: int, screens: bool) -> torch.Tensor:
+    """(N,) long: the row-major index of the leader's top-left entry in the newest frame (the last
+    ``frame_channels`` channels) of uint8 observations ``(N, H, W, C)``: on a grid its own plane (the
+    frame's last), on a screen (or its cells) its colour, pure blue (drawn last, so never hidden)."""
+    newest = obs[..., -frame_channels:]
+    if screens:
+        red, green, blue = newest[..., 0], newest[..., 1], newest[..., 2]
+        mask = (blue > 127) & (red < 128) & (green < 128)
+    else:
+        mask = newest[..., -1] > 0  # GRID_PLANES: destination, obstacles, followers, leader
+    return mask.reshape(obs.shape[0], -1).float().argmax(1)
+
+
 class LeaderWindow(nn.Module):
     """``(N, H, W, C)`` frame stacks -> ``(N, up + 1 + down, 2 * side + 1, C + 1)``: every frame shifted
     so that the leader's top-left entry in the newest frame sits at row ``up``, column ``side``;
-    entries outside the board are 0, and the extra last plane is 1 on the board.
-
-    The leader is found in the newest frame (the last ``frame_channels`` channels): on a grid its
-    own plane (the frame's last), on a screen (or its cells) its colour, pure blue (drawn last, so never hidden).
+    entries outside the board are 0, and the extra last plane is 1 on the board. The leader is found
+    by ``leader_entry``.
     """
 
     def __init__(self, obs_shape: tuple[int, int, int], window: tuple[int, int, int], frame_channels: int,
@@ -80,26 +91,24 @@ class LeaderWindow(nn.Module):
         self.register_buffer("rows", torch.arange(self.out_shape[0]), persistent=False)
         self.register_buffer("cols", torch.arange(self.out_shape[1]), persistent=False)
 
-    def leader_mask(self, obs: torch.Tensor) -> torch.Tensor:
-        """(N, H, W) bool: the leader's entries in the newest frame of uint8 observations."""
-        newest = obs[..., -self.frame_channels:]
-        if not self.screens:
-            return newest[..., -1] > 0  # GRID_PLANES: destination, obstacles, followers, leader
-        red, green, blue = newest[..., 0], newest[..., 1], newest[..., 2]
-        return (blue > 127) & (red < 128) & (green < 128)
-
-    def forward(self, obs: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
-        """uint8 observations -> the window as floats: the observation's entries times ``scale``, and the
-        board plane (1 on the board, 0 off it) last."""
+    def forward(self, obs: torch.Tensor, scale: float = 1.0, extra: torch.Tensor | None = None) -> torch.Tensor:
+        """uint8 observations -> the window as floats: the observation's entries times ``scale``, then the
+        planes of ``extra`` (floats on the same board, ``(N, H, W, E)``, cropped alike), and the board plane
+        (1 on the board, 0 off it) last."""
         n, h, w, c = obs.shape
-        where = self.leader_mask(obs).reshape(n, -1).float().argmax(1)  # row-major: the top-left entry
+        where = leader_entry(obs, self.frame_channels, self.screens)  # row-major: the top-left entry
         rows = (where // w)[:, None] - self.up + self.rows  # (n, window rows): rows of the board
         cols = (where % w)[:, None] - self.side + self.cols
         board = ((rows >= 0) & (rows < h))[:, :, None] & ((cols >= 0) & (cols < w))[:, None, :]
-        flat = rows.clamp(0, h - 1)[:, :, None] * w + cols.clamp(0, w - 1)[:, None, :]
-        crop = obs.reshape(n, h * w, c).gather(1, flat.reshape(n, -1, 1).expand(-1, -1, c))
-        crop = crop.reshape(n, *self.out_shape[:2], c).float() * (board[..., None] * scale)
-        return torch.cat([crop, board[..., None].float()], dim=3)
+        flat = (rows.clamp(0, h - 1)[:, :, None] * w + cols.clamp(0, w - 1)[:, None, :]).reshape(n, -1, 1)
+
+        def crop(planes: torch.Tensor) -> torch.Tensor:
+            k = planes.shape[3]
+            picked = planes.reshape(n, h * w, k).gather(1, flat.expand(-1, -1, k))
+            return picked.reshape(n, *self.out_shape[:2], k).float() * board[..., None]
+
+        parts = [crop(obs) * scale] + ([crop(extra)] if extra is not None else [])
+        return torch.cat([*parts, board[..., None].float()], dim=3)
 
 
 class ScreenCells(nn.Module):
@@ -120,6 +129,80 @@ class ScreenCells(nn.Module):
         return obs.index_select(1, self.rows).index_select(2, self.cols)
 
 
+FORECAST_LAGS = (-1, 0, 1, 2, 3)
+
+
+class ObstacleForecast(nn.Module):
+    """``(N, H, W, C)`` cell stacks -> ``(N, H, W, len(lags))`` 0/1 floats: plane ``j`` marks the cells where
+    an agent arriving at row ``x`` after ``max(leader's row - x + lags[j], 1)`` steps would collide (lag 0:
+    the leader going forward every step; 1: after one stay; a follower two rows below arrives on lag 2).
+
+    A fixed layer, no weights: each obstacle's column is read from the newest and the previous frame (the
+    spec's reset draws at most one obstacle per row), its speed and direction are the ones of the game's
+    rule of motion that carry the previous column to the newest, and its future sub-step cells follow that
+    rule (spec 'One step': an obstacle bounces like a ball between columns 0 and W-1, which is a constant
+    motion on a circle of 2(W-1) cells folded in two). Where no obstacle moved between the two frames (an
+    episode's first screen, repeated), every speed and direction is marked. Screens must be read per cell.
+    """
+
+    def __init__(self, board: tuple[int, int], frame_channels: int, screens: bool,
+                 lags: tuple[int, ...] = FORECAST_LAGS):
+        super().__init__()
+        self.height, self.width = board
+        self.frame_channels, self.screens = frame_channels, screens
+        self.period = max(2 * (self.width - 1), 1)
+        # arrival lags of the planes, and one more either side for the rows above and below an obstacle
+        self.register_buffer("lags", torch.arange(min(lags) - 1, max(lags) + 2), persistent=False)
+        if tuple(range(min(lags), max(lags) + 1)) != tuple(lags):
+            raise ValueError(f"lags: {lags} are not consecutive")
+        # the hypotheses (direction, speed) an obstacle may have now
+        self.register_buffer("directions", torch.tensor([1, 1, -1, -1]), persistent=False)
+        self.register_buffer("speeds", torch.tensor([1, 2, 1, 2]), persistent=False)
+        self.register_buffer("rows", torch.arange(self.height), persistent=False)
+
+    def obstacles(self, obs: torch.Tensor, frames_back: int) -> torch.Tensor:
+        """(N, H, W) bool: obstacle cells of the frame ``frames_back`` before the newest."""
+        start = obs.shape[3] - (frames_back + 1) * self.frame_channels
+        if not self.screens:
+            return obs[..., start + 1] > 0  # GRID_PLANES: destination, obstacles, followers, leader
+        red, green, blue = obs[..., start], obs[..., start + 1], obs[..., start + 2]
+        return (red > 127) & (green < 128) & (blue < 128)
+
+    def fold(self, u: torch.Tensor) -> torch.Tensor:
+        """A place on the circle of 2(W-1) cells -> its column."""
+        return torch.where(u > self.width - 1, self.period - u, u)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        now, before = self.obstacles(obs, 0), self.obstacles(obs, 1)
+        present, present_before = now.any(2), before.any(2)  # (N, H): rows holding an obstacle
+        col, col_before = now.float().argmax(2), before.float().argmax(2)
+        # each hypothesis' place on the circle now, and the column it came from
+        place = torch.where(self.directions > 0, col[..., None], (self.period - col[..., None]) % self.period)
+        came_from = self.fold((place - self.speeds) % self.period)
+        fits = (came_from == col_before[..., None]) & present_before[..., None]  # (N, H, 4)
+        still = ((col == col_before) | ~present).all(1)  # (N,): nothing moved, the first screen repeated
+        unknown = still[:, None] | ~present_before
+        allowed = (fits | unknown[..., None]) & present[..., None]
+        leader_row = leader_entry(obs, self.frame_channels, self.screens) // self.width
+        # steps until an agent on lag l reaches an obstacle's row; the cells the obstacle reaches on that step
+        steps = (leader_row[:, None, None] - self.rows[None, :, None] + self.lags).clamp(min=1)[..., None]
+        first = self.fold((place[:, :, None] + self.speeds * (steps - 1) + 1) % self.period)  # (N, H, L, 4)
+        last = self.fold((place[:, :, None] + self.speeds * steps) % self.period)
+        keep = allowed[:, :, None, :].expand_as(first).float()
+        on = torch.zeros(*first.shape[:3], self.width, device=obs.device)
+        on.scatter_add_(3, first, keep).scatter_add_(3, last, keep)
+        on = on > 0  # (N, H, L, W): the cells reached
+        near = on.clone()  # and those beside them in the row
+        near[..., 1:] |= on[..., :-1]
+        near[..., :-1] |= on[..., 1:]
+        # rule 3: within distance 1 of a reached cell, in its row or right above or below it (an agent reaches
+        # a row one step after the row below it)
+        danger = near[:, :, 1:-1].clone()
+        danger[:, 1:] |= on[:, :-1, :-2]
+        danger[:, :-1] |= on[:, 1:, 2:]
+        return danger.permute(0, 1, 3, 2).float()
+
+
 class DuelingQNetwork(nn.Module):
     """uint8 observations -> Q-values of the four actions.
 
@@ -127,14 +210,17 @@ class DuelingQNetwork(nn.Module):
     observation): look through a ``LeaderWindow`` first; None: the whole observation as it is.
     ``frame_channels``: channels of one frame of the stack (3 for screens, 4 for grids).
     ``cells`` (board height, width), screens only: read one pixel per cell first (``ScreenCells``);
-    ``window`` is then in cells, and the encoder's first layer reads every cell."""
+    ``window`` is then in cells, and the encoder's first layer reads every cell.
+    ``forecast``: add the planes of an ``ObstacleForecast`` to what the encoder reads (grids, or screens
+    read per cell, of two frames or more)."""
 
     def __init__(self, obs_shape: tuple[int, int, int], high: float = 255.0, hidden: int = 128,
                  channels: tuple[int, int, int] = (16, 32, 32), window: tuple[int, int, int] | None = None,
-                 frame_channels: int | None = None, cells: tuple[int, int] | None = None):
+                 frame_channels: int | None = None, cells: tuple[int, int] | None = None, forecast: bool = False):
         super().__init__()
         self.obs_shape = tuple(obs_shape)
         screens = min(obs_shape[:2]) >= 64
+        frame_channels = frame_channels or (3 if screens else 4)
         self.register_buffer("scale", torch.tensor(1.0 / high), persistent=False)
         self.cells = None
         seen = self.obs_shape
@@ -143,9 +229,16 @@ class DuelingQNetwork(nn.Module):
                 raise ValueError(f"cells: only screens are read per cell, not {self.obs_shape} observations")
             self.cells = ScreenCells(self.obs_shape, tuple(cells))
             seen = self.cells.out_shape
+        self.forecast = None
+        if forecast:
+            if screens and self.cells is None:
+                raise ValueError("forecast: screens must be read per cell (cells)")
+            if seen[2] < 2 * frame_channels:
+                raise ValueError(f"forecast: needs two frames or more, not {seen[2] // frame_channels}")
+            self.forecast = ObstacleForecast(seen[:2], frame_channels, screens)
+            seen = (*seen[:2], seen[2] + len(FORECAST_LAGS))
         self.window = None
         if window is not None:
-            frame_channels = frame_channels or (3 if screens else 4)
             self.window = LeaderWindow(seen, tuple(window), frame_channels, screens)
             seen = self.window.out_shape
         self.encoder = encoder(seen, channels, screens and self.cells is None)
@@ -157,6 +250,11 @@ class DuelingQNetwork(nn.Module):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         if self.cells is not None:
             obs = self.cells(obs)
-        x = obs.float() * self.scale if self.window is None else self.window(obs, self.scale)
+        extra = self.forecast(obs) if self.forecast is not None else None
+        if self.window is not None:
+            x = self.window(obs, self.scale, extra)
+        else:
+            x = obs.float() * self.scale
+            x = x if extra is None else torch.cat([x, extra], dim=3)
         x = self.encoder(x.permute(0, 3, 1, 2))
         return dueling(self.value(x), self.advantage(x))
