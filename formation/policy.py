@@ -56,17 +56,18 @@ class NetworkSpec:
     frame_channels: int | None = None
     cells: tuple[int, int] | None = None  # a screen read one pixel per cell of this board
     forecast: bool = False  # the obstacle forecast planes (formation.learn.qnet.ObstacleForecast)
+    row_scan: int = 0  # planes of a RowScan (formation.learn.qnet)
 
     def build(self) -> DuelingQNetwork:
         return DuelingQNetwork(self.obs_shape, high=self.high, hidden=self.hidden, channels=self.channels,
                                window=self.window, frame_channels=self.frame_channels, cells=self.cells,
-                               forecast=self.forecast)
+                               forecast=self.forecast, row_scan=self.row_scan)
 
     def to_dict(self) -> dict[str, Any]:
         return {"obs_shape": list(self.obs_shape), "high": self.high, "hidden": self.hidden,
                 "channels": list(self.channels), "window": list(self.window) if self.window is not None else None,
                 "frame_channels": self.frame_channels, "cells": list(self.cells) if self.cells is not None else None,
-                "forecast": self.forecast}
+                "forecast": self.forecast, "row_scan": self.row_scan}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> NetworkSpec:
@@ -77,7 +78,7 @@ class NetworkSpec:
                    window=tuple(int(v) for v in window) if window is not None else None,
                    frame_channels=int(frame_channels) if frame_channels is not None else None,
                    cells=tuple(int(v) for v in cells) if cells is not None else None,
-                   forecast=bool(values.get("forecast", False)))
+                   forecast=bool(values.get("forecast", False)), row_scan=int(values.get("row_scan", 0)))
 
 
 class Policy:

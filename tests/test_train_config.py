@@ -48,6 +48,8 @@ def test_yaml_and_dotted_overrides(tmp_path):
     ({"train": {"obstacle_forecast": "yes"}}, "train.obstacle_forecast"),
     ({"train": {"obstacle_forecast": True, "screen_cells": False}}, "train.obstacle_forecast"),
     ({"game": {"frame_stack": 1}, "train": {"obstacle_forecast": True}}, "train.obstacle_forecast"),
+    ({"train": {"row_scan": -1}}, "train.row_scan"),
+    ({"train": {"row_scan": 8, "screen_cells": False}}, "train.row_scan"),
     ({"train": {"margin_gap": -1}}, "train.margin_gap"),
     ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),
     ({"train": {"leader_window": [1, 2, -3]}}, "train.leader_window"),
@@ -95,11 +97,13 @@ def test_a_saved_run_from_before_a_key_existed_keeps_what_it_trained_with(tmp_pa
     del saved["train"]["leader_window"]  # written before the leader window existed: whole-screen networks
     del saved["train"]["screen_cells"]  # and before screens were read per cell: 4x4-pixel patches
     del saved["train"]["obstacle_forecast"]
+    del saved["train"]["row_scan"]
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(saved))
     assert RunConfig.load_saved(path).train.leader_window is None
     assert RunConfig.load_saved(path).train.screen_cells is False
     assert RunConfig.load_saved(path).train.obstacle_forecast is False
+    assert RunConfig.load_saved(path).train.row_scan == 0
     assert RunConfig.load(path).train.leader_window == (12, 3, 10)  # a plain config takes today's default
     assert RunConfig.load(path).train.screen_cells is True
     saved["train"]["leader_window"] = [4, 1, 2]

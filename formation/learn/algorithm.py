@@ -104,11 +104,13 @@ def leader_window_config(run: RunConfig, obs_shape: tuple[int, ...]) -> dict[str
     """``train.leader_window`` (in cells) as the module's ``window`` (in entries of what the network
     reads: cells of a grid or of a screen read per cell, pixels of a screen) and ``frame_channels``;
     ``train.screen_cells`` as ``cells``, the board's height and width; ``train.obstacle_forecast`` as
-    ``forecast``."""
+    ``forecast``; ``train.row_scan`` as ``row_scan``."""
     per_cell = run.game.obs_type == "pixels" and run.train.screen_cells
     cells = {"cells": [run.game.height, run.game.width]} if per_cell else {}
     if run.train.obstacle_forecast:
         cells["forecast"] = True
+    if run.train.row_scan:
+        cells["row_scan"] = run.train.row_scan
     window = run.train.leader_window
     if window is None:
         return cells

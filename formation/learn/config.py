@@ -83,6 +83,9 @@ class TrainSettings:
     # last two frames and the game's rule of motion (formation.learn.qnet.ObstacleForecast; no weights).
     # Needs grid observations or screen_cells, and frame_stack >= 2
     obstacle_forecast: bool = False
+    # planes of a recurrent convolution down the rows of what the Q-networks read, from the destination's side
+    # (formation.learn.qnet.RowScan); 0: none. Needs grid observations or screen_cells
+    row_scan: int = 0
     grad_clip: float = 10.0
     total_env_steps: int = 300_000
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
@@ -107,6 +110,7 @@ class TrainSettings:
                      "total_env_steps", "weights_every_updates", "epsilon_env_steps"):
             _integer(self, name, 1)
         _integer(self, "learning_starts", 0)
+        _integer(self, "row_scan", 0)
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
                      "tolerant_formation", "obstacle_forecast"):
@@ -191,8 +195,12 @@ class RunConfig:
     checkpoint: CheckpointSettings = field(default_factory=CheckpointSettings)
 
     def __post_init__(self) -> None:
+        patches = self.game.obs_type == "pixels" and not self.train.screen_cells
+        if self.train.row_scan and patches:
+            raise ConfigError(f"train.row_scan: {self.train.row_scan} needs the screen read per cell; "
+                              "allowed: 0, or any with train.screen_cells: true or game.obs_type: grid")
         if self.train.obstacle_forecast:
-            if self.game.obs_type == "pixels" and not self.train.screen_cells:
+            if patches:
                 raise ConfigError("train.obstacle_forecast: true needs the screen read per cell; "
                                   "allowed with train.screen_cells: true or game.obs_type: grid")
             if self.game.frame_stack < 2:
@@ -253,7 +261,7 @@ class RunConfig:
 
 # keys added to the config after runs were saved without them, with the value those runs trained with
 LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("train", "screen_cells"): False,
-                                          ("train", "obstacle_forecast"): False}
+                                          ("train", "obstacle_forecast"): False, ("train", "row_scan"): 0}
 
 
 def _read_yaml(path: str | Path) -> dict[str, Any]:

@@ -3,7 +3,7 @@
 It implements RLlib's ``QNetAPI`` and ``TargetNetworkAPI``, so RLlib's DQN learner (the stock
 path) and ours both train it, and ``InferenceOnlyAPI``, so rollout actors get weights without
 the target network. ``model_config``: ``hidden``, ``channels``, ``window``, ``frame_channels``, ``cells``,
-``forecast`` (see ``formation.learn.qnet``).
+``forecast``, ``row_scan`` (see ``formation.learn.qnet``).
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
                                          channels=tuple(cfg.get("channels", (16, 32, 32))),
                                          window=tuple(window) if window is not None else None,
                                          frame_channels=cfg.get("frame_channels"), cells=cfg.get("cells"),
-                                         forecast=bool(cfg.get("forecast", False)))
+                                         forecast=bool(cfg.get("forecast", False)),
+                                         row_scan=int(cfg.get("row_scan", 0)))
         # RLlib's DQNConfig puts an epsilon schedule into every module's model_config.
         self.epsilon_schedule = Scheduler(fixed_value_or_schedule=cfg.get("epsilon", 0.05), framework="torch")
 
