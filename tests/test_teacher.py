@@ -205,3 +205,58 @@ def test_following_safe_labels_succeeds():
             game.step(np.array([label if label is not None else (3, 3)]))
         wins += bool(game.success[0])
     assert wins >= 18
+
+
+def test_response_labels_answer_the_leaders_own_move_with_a_shortest_path_when_one_exists():
+    teacher = Teacher(SMALL, slack=200, order="lockstep")
+    answered = kept = 0
+    for scenario in scenarios(SMALL, range(60)):
+        joint = teacher.label(scenario)
+        if joint is None:
+            continue
+        assert teacher.respond(scenario, joint, joint[0]) == joint  # the teacher's own leader move: its label
+        best = steps_after(SMALL, scenario, joint)
+        for leader_move in set(range(4)) - {joint[0]}:
+            response = teacher.respond(scenario, joint, leader_move)
+            assert response[0] == joint[0]  # the leader keeps the teacher's label
+            with_follower = [(leader_move, f) for f in range(4)]
+            shortest = [j for j in with_follower if steps_after(SMALL, scenario, j) == best]
+            if not shortest:  # no follower move makes the leader's move a shortest path: the teacher's label
+                assert response == joint
+                kept += 1
+                continue
+            # the first in the lockstep order of the follower moves that keep a shortest path
+            assert (leader_move, response[1]) == next(j for j in order_at(scenario) if j in shortest)
+            answered += 1
+    assert answered > 20 and kept > 20
+    # the first screen, with robust labels, keeps the teacher's label
+    robust = Teacher(SMALL, slack=200, order="lockstep", robust_first_step=True)
+    scenario = scenarios(SMALL, [3])[0]
+    joint = robust.label(scenario, first_step=True)
+    assert robust.respond(scenario, joint, (joint[0] + 1) % 4, first_step=True) == joint
+
+
+@pytest.mark.parametrize("follower_labels", ["teacher", "response"])
+def test_rollout_actor_learns_from_response_labels_but_demonstrations_play_the_teachers(follower_labels):
+    pytest.importorskip("ray")
+    from formation.learn.algorithm import build_algorithm_config
+    from formation.learn.config import RunConfig
+    from formation.learn.rollout_actor import RolloutActor
+
+    run = RunConfig.load("configs/smoke.yaml", {"train.follower_labels": follower_labels})
+    actor = RolloutActor(config=build_algorithm_config(run))
+    game, teacher = actor.rollout.game, actor._teacher
+    scenarios = [game.scenario(i) for i in range(game.batch_size)]
+    first = [teacher.label(s, first_step=True) for s in scenarios]
+    # a leader that never makes the teacher's move, on a later step (robust first-step labels stay)
+    game.steps[:] = 1
+    greedy = np.array([[((j[0] if j else 0) + 1) % 4, 0] for j in first])
+    joints, labels = actor._planner_labels(greedy)
+    changed = 0
+    for i, scenario in enumerate(scenarios):
+        joint = teacher.label(scenario)
+        assert tuple(joints[i]) == joint
+        expected = joint if follower_labels == "teacher" else teacher.respond(scenario, joint, int(greedy[i, 0]))
+        assert tuple(labels[i]) == expected and labels[i, 0] == joint[0]
+        changed += tuple(labels[i]) != joint
+    assert (changed > 0) == (follower_labels == "response")

@@ -26,6 +26,7 @@ from formation.learn.shaping import POTENTIALS
 PATHS = ("formation", "stock")
 EXPLORATIONS = ("independent", "joint")
 LABEL_ORDERS = ("planner", "lockstep", "toward", "safe", "widest")
+FOLLOWER_LABELS = ("teacher", "response")
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,10 @@ class TrainSettings:
     # labels prefer joint actions after which the formation would survive any one agent landing a cell off
     # (up, down, left or right; formation.learn.teacher)
     tolerant_formation: bool = False
+    # the followers' labels: "teacher", their part of the teacher's joint action; "response", the moves that
+    # best answer the leader network's own greedy move (formation.learn.teacher.Teacher.respond), so that a
+    # follower learns to keep formation with the leader it has rather than with the teacher
+    follower_labels: str = "teacher"
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True
     hidden: int = 256
@@ -122,6 +127,9 @@ class TrainSettings:
         if self.label_order not in LABEL_ORDERS:
             raise ConfigError(f"train.label_order: {self.label_order!r} is not allowed; "
                               f"allowed: {', '.join(LABEL_ORDERS)}")
+        if self.follower_labels not in FOLLOWER_LABELS:
+            raise ConfigError(f"train.follower_labels: {self.follower_labels!r} is not allowed; "
+                              f"allowed: {', '.join(FOLLOWER_LABELS)}")
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
         if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0

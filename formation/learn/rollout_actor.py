@@ -118,34 +118,44 @@ class RolloutActor(EnvRunner, Checkpointable):
         path = shortest_path(self.rollout.game.scenario(game), config=self.run.game)
         self._plans[game] = list(path or [])
 
-    def _planner_labels(self) -> np.ndarray:
-        """DAgger: the teacher's joint action in every game's present state (-1 where it has none)."""
-        game, labels = self.rollout.game, np.full((self.rollout.batch_size, self.rollout.n_agents), -1, np.int8)
+    def _planner_labels(self, greedy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """DAgger: the teacher's joint action in every game's present state (-1 where it has none), and
+        the labels to learn from: the same, or with ``train.follower_labels: response`` the followers'
+        moves answering the leader's ``greedy`` move."""
+        game, joints = self.rollout.game, np.full((self.rollout.batch_size, self.rollout.n_agents), -1, np.int8)
+        labels = joints.copy()
+        respond = self.run.train.follower_labels == "response"
         for i in range(self.rollout.batch_size):
-            joint = self._teacher.label(game.scenario(i), first_step=game.steps[i] == 0)
+            scenario, first = game.scenario(i), game.steps[i] == 0
+            joint = self._teacher.label(scenario, first_step=first)
             if joint is not None:
-                labels[i] = joint
-        return labels
+                joints[i] = joint
+                labels[i] = self._teacher.respond(scenario, joint, int(greedy[i, 0]), first) if respond else joint
+        return joints, labels
 
-    def _actions(self, observations: np.ndarray) -> np.ndarray:
+    def _actions(self, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The greedy actions (games, agents), and the epsilon-greedy ones to play."""
         obs = torch.from_numpy(observations)
         with torch.no_grad():
             greedy = {m: self.module[m].forward_inference({Columns.OBS: obs})[Columns.ACTIONS].numpy()
                       for m in set(self._modules_of_agent)}
         actions = np.stack([greedy[m] for m in self._modules_of_agent], axis=1)
         t = self.run.train
-        return epsilon_greedy(actions, epsilon_at(self.num_env_steps_sampled_lifetime, t), self._rng,
-                              joint=t.exploration == "joint")
+        return actions, epsilon_greedy(actions, epsilon_at(self.num_env_steps_sampled_lifetime, t), self._rng,
+                                       joint=t.exploration == "joint")
 
     def sample(self, **kwargs) -> dict[str, Any]:
         run, rollout = self.run, self.rollout
         chunks = []
         for _ in range(run.train.steps_per_sample):
-            actions = self._actions(rollout.observations)
-            labels = self._planner_labels() if run.train.dagger else np.full(actions.shape, -1, np.int8)
+            greedy, actions = self._actions(rollout.observations)
+            if run.train.dagger:
+                joints, labels = self._planner_labels(greedy)
+            else:
+                labels = np.full(actions.shape, -1, np.int8)
             for i in range(self._demo_games):  # demonstration games follow the teacher
                 if run.train.dagger:
-                    actions[i] = np.where(labels[i] >= 0, labels[i], actions[i])
+                    actions[i] = np.where(joints[i] >= 0, joints[i], actions[i])
                 elif self._plans[i]:
                     actions[i] = labels[i] = self._plans[i].pop(0)
             chunks.append(rollout.step(actions, labels=labels))

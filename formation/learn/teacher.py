@@ -73,9 +73,32 @@ class Teacher:
         return cls(run.game, t.planner_slack, t.label_order, t.robust_first_step, t.tolerant_formation)
 
     def label(self, scenario: Scenario, first_step: bool = False) -> tuple[int, ...] | None:
+        """The joint action that labels ``scenario``; None where no path is left within the slack."""
+        return self._label(scenario, first_step)
+
+    def respond(self, scenario: Scenario, joint: tuple[int, ...], leader_move: int, first_step: bool = False
+                ) -> tuple[int, ...]:
+        """``joint`` (the state's label) with the followers' part answering ``leader_move``, the move the
+        leader's own network makes: the followers' moves of the first joint action in the order that starts
+        a shortest path with the leader making that move, where one does and the order is ``lockstep`` or
+        ``toward``; otherwise, and on a first step with ``robust_first_step``, ``joint`` as it is. The
+        leader's part stays the teacher's."""
+        if leader_move == joint[0] or self.order not in SHORTEST_PATH_ORDERS or self.config.n_followers > 2 \
+                or (first_step and self.robust_first_step):
+            return joint
+        found = shortest_first_moves(scenario, config=self._capped_config(self._limit(scenario)))
+        starts = set(found[1]) if found is not None else set()
+        answer = next((j for j in self._order(scenario) if j[0] == leader_move and j in starts), None)
+        return joint if answer is None else (joint[0], *answer[1:])
+
+    def _order(self, scenario: Scenario) -> list[tuple[int, ...]]:
         order = self._orders[scenario.leader[1]]
         if self.tolerant_formation:  # first the joint actions after which one agent's slip cannot break the formation
             order = sorted(order, key=lambda joint: not self._tolerant(scenario, joint))
+        return order
+
+    def _label(self, scenario: Scenario, first_step: bool) -> tuple[int, ...] | None:
+        order = self._order(scenario)
         if first_step and self.robust_first_step:
             near = self._nearest_obstacles(scenario)
             seen = (scenario.leader, scenario.followers,
