@@ -3,6 +3,7 @@
     .venv/bin/python experiments/imitation_probe.py collect --states 50000 --seed 11 --out /tmp/probe_11.npz
     .venv/bin/python experiments/imitation_probe.py collect --states 50000 --seed 12 --out /tmp/probe_12.npz
     .venv/bin/python experiments/imitation_probe.py fit /tmp/probe_1[12].npz --net flat [--iterations 8000]
+    .venv/bin/python experiments/imitation_probe.py fit /tmp/probe_1[12].npz --net window --forecast [--row-scan 16]
 
 ``collect`` plays setting-1 games (grid observations, 2 stacked frames) that follow the teacher's
 joint label except, with probability ``--explore`` per step, a random joint move (so states off the
@@ -132,7 +133,11 @@ def make_net(name: str, shape: tuple[int, int, int], args: argparse.Namespace, a
     if name in ("centred-leader", "centred-self"):  # grid planes: destination, obstacles, followers, leader
         plane = shape[2] - 1 if name == "centred-leader" or agent == 0 else shape[2] - 2
         return Centred(shape, plane, args.hidden, tuple(args.channels), args.window)
-    raise SystemExit(f"--net: {name!r} is not allowed; allowed: flat, centred-leader, centred-self")
+    if name == "window":  # the training's own network: the leader window, with the options of train.*
+        return DuelingQNetwork(shape, 1, hidden=args.hidden, channels=tuple(args.channels),
+                               window=tuple(args.window or (12, 3, 10)), frame_channels=4,
+                               forecast=args.forecast, row_scan=args.row_scan)
+    raise SystemExit(f"--net: {name!r} is not allowed; allowed: flat, centred-leader, centred-self, window")
 
 
 def main() -> None:
@@ -154,6 +159,8 @@ def main() -> None:
     f.add_argument("--channels", type=int, nargs=3, default=[16, 32, 32])
     f.add_argument("--window", type=int, nargs=3, help="rows above, rows below, columns either side")
     f.add_argument("--report", type=int, default=1000)
+    f.add_argument("--forecast", action="store_true", help="--net window: with train.obstacle_forecast")
+    f.add_argument("--row-scan", type=int, default=0, help="--net window: train.row_scan planes")
     args = p.parse_args()
     torch.set_num_threads(1)
     collect(args) if args.command == "collect" else fit(args)
