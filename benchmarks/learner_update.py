@@ -7,8 +7,8 @@ For setting 1 from grid observations (2 stacked frames, batch 64: the quickstart
 modules one after the other (RLlib's order) and in two threads at once (``FormationLearner`` on a
 CPU); each with the whole observation and the widths of configs/paper.yaml, and with the default
 recipe's network (a leader window, wider layers; from pixels, reading the screen one pixel per cell as
-the default does, and in 4x4-pixel patches). Each torch op runs on one thread, as in the
-learner's Ray actor. No Ray: the data path's own cost is the difference to
+the default does, and in 4x4-pixel patches), and with the obstacle forecast (``train.obstacle_forecast``).
+Each torch op runs on one thread, as in the learner's Ray actor. No Ray: the data path's own cost is the difference to
 ``benchmarks/train_throughput.py``.
 """
 
@@ -67,22 +67,27 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=40)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    print(f"{'observation':<34} {'batch':>5} {'one after the other':>20} {'two threads':>12} {'speed-up':>9}")
+    print(f"{'observation':<42} {'batch':>5} {'one after the other':>20} {'two threads':>12} {'speed-up':>9}")
     for obs_type, stack, batch in (("grid", 2, 64), ("pixels", 4, 32)):
         run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": obs_type, "frame_stack": stack}})
         shape = Observer(BatchedGame(run.game, batch_size=1)).shape
         widths = {"channels": run.train.channels, "hidden": run.train.hidden}  # the default recipe's
         small = {"channels": (16, 32, 32), "hidden": 128}  # configs/paper.yaml's
         variants = [("", small), (", window", {**widths, **leader_window_config(run, shape)})]
+        forecast = dataclasses.replace(run, train=dataclasses.replace(run.train, obstacle_forecast=True))
+        with_forecast = {**widths, **leader_window_config(forecast, shape)}
         if obs_type == "pixels":  # the default reads cells; the patches it read before
             patches = dataclasses.replace(run, train=dataclasses.replace(run.train, screen_cells=False))
             variants = [("", small), (", window, cells", variants[1][1]),
-                        (", window, patches", {**widths, **leader_window_config(patches, shape)})]
+                        (", window, patches", {**widths, **leader_window_config(patches, shape)}),
+                        (", window, cells, forecast", with_forecast)]
+        else:
+            variants.append((", window, forecast", with_forecast))
         for name, window in variants:
             window = {k: tuple(v) if isinstance(v, list) else v for k, v in window.items()}
             serial = ms_per_update(shape, batch, 1, args.updates, window)
             threaded = ms_per_update(shape, batch, 2, args.updates, window)
-            print(f"{obs_type + ' ' + 'x'.join(map(str, shape)) + name:<34} {batch:>5} {serial:>17.1f} ms "
+            print(f"{obs_type + ' ' + 'x'.join(map(str, shape)) + name:<42} {batch:>5} {serial:>17.1f} ms "
                   f"{threaded:>9.1f} ms {serial / threaded:>8.2f}x")
 
 
