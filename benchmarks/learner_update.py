@@ -73,16 +73,14 @@ def main() -> None:
         shape = Observer(BatchedGame(run.game, batch_size=1)).shape
         widths = {"channels": run.train.channels, "hidden": run.train.hidden}  # the default recipe's
         small = {"channels": (16, 32, 32), "hidden": 128}  # configs/paper.yaml's
-        variants = [("", small), (", window", {**widths, **leader_window_config(run, shape)})]
-        forecast = dataclasses.replace(run, train=dataclasses.replace(run.train, obstacle_forecast=True))
-        with_forecast = {**widths, **leader_window_config(forecast, shape)}
+        plain = dataclasses.replace(run, train=dataclasses.replace(run.train, obstacle_forecast=False))
+        variants = [("", small), (", window", {**widths, **leader_window_config(plain, shape)}),
+                    (", window, forecast", {**widths, **leader_window_config(run, shape)})]  # the default
         if obs_type == "pixels":  # the default reads cells; the patches it read before
-            patches = dataclasses.replace(run, train=dataclasses.replace(run.train, screen_cells=False))
+            patches = dataclasses.replace(plain, train=dataclasses.replace(plain.train, screen_cells=False))
             variants = [("", small), (", window, cells", variants[1][1]),
                         (", window, patches", {**widths, **leader_window_config(patches, shape)}),
-                        (", window, cells, forecast", with_forecast)]
-        else:
-            variants.append((", window, forecast", with_forecast))
+                        (", window, cells, forecast", variants[2][1])]
         for name, window in variants:
             window = {k: tuple(v) if isinstance(v, list) else v for k, v in window.items()}
             serial = ms_per_update(shape, batch, 1, args.updates, window)

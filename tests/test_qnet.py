@@ -78,7 +78,8 @@ def test_leader_window_finds_the_leader_on_rendered_screens():
     from formation.learn.config import RunConfig
 
     run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "pixels", "frame_stack": 2},
-                               "train": {"leader_window": [2, 1, 3], "screen_cells": False}})
+                               "train": {"leader_window": [2, 1, 3], "screen_cells": False,
+                                         "obstacle_forecast": False}})
     cfg = leader_window_config(run, (84, 84, 6))
     # 3.36 pixels a cell: 2 cells above, 1 below and 3 either side, plus the leader's own cell
     assert cfg == {"window": [7, 7, 14], "frame_channels": 3}
@@ -135,7 +136,7 @@ def test_a_screen_read_per_cell_has_its_window_in_cells_with_the_leader_at_the_f
     run = RunConfig.from_dict({"game": {"setting": 3, "obs_type": "pixels", "frame_stack": 2},
                                "train": {"leader_window": [2, 1, 3], "screen_cells": True}})
     cfg = leader_window_config(run, (84, 84, 6))
-    assert cfg == {"window": [2, 1, 3], "frame_channels": 3, "cells": [50, 50]}
+    assert cfg == {"window": [2, 1, 3], "frame_channels": 3, "cells": [50, 50], "forecast": True}
     from formation.learn.algorithm import module_specs
     for spec in module_specs(run).values():  # the RLlib modules training builds read cells too
         assert spec.build().q_network.cells.out_shape == (50, 50, 6)

@@ -50,7 +50,7 @@ def test_yaml_and_dotted_overrides(tmp_path):
     ({"game": {"frame_stack": 1}, "train": {"obstacle_forecast": True}}, "train.obstacle_forecast"),
     ({"train": {"row_scan": -1}}, "train.row_scan"),
     ({"train": {"follower_labels": "leader"}}, "train.follower_labels"),
-    ({"train": {"row_scan": 8, "screen_cells": False}}, "train.row_scan"),
+    ({"train": {"row_scan": 8, "screen_cells": False, "obstacle_forecast": False}}, "train.row_scan"),
     ({"train": {"margin_gap": -1}}, "train.margin_gap"),
     ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),
     ({"train": {"leader_window": [1, 2, -3]}}, "train.leader_window"),
@@ -88,6 +88,7 @@ def test_paper_config_is_the_papers_table_2():
     assert t.shaping == 0 and paper.game.obs_type == "pixels" and paper.game.frame_stack == 4
     # none of our recipe: no teacher, each agent explores on its own, one-step targets
     assert t.leader_window is None and not t.screen_cells  # the paper's networks see the whole screen in patches
+    assert not t.obstacle_forecast  # and learn the obstacles' motion themselves
     assert (t.dagger, t.demonstrations, t.margin, t.exploration, t.n_step, t.prioritized) == (
         False, 0, 0, "independent", 1, False)
     assert paper.game.max_steps == 200 and paper.game.reward_reach == 50
@@ -107,6 +108,7 @@ def test_a_saved_run_from_before_a_key_existed_keeps_what_it_trained_with(tmp_pa
     assert RunConfig.load_saved(path).train.row_scan == 0
     assert RunConfig.load(path).train.leader_window == (12, 3, 10)  # a plain config takes today's default
     assert RunConfig.load(path).train.screen_cells is True
+    assert RunConfig.load(path).train.obstacle_forecast is True
     saved["train"]["leader_window"] = [4, 1, 2]
     path.write_text(yaml.safe_dump(saved))
     assert RunConfig.load_saved(path).train.leader_window == (4, 1, 2)

@@ -87,7 +87,7 @@ class TrainSettings:
     # lockstep with the leader (or one to three steps later) would collide, from the obstacles' motion in the
     # last two frames and the game's rule of motion (formation.learn.qnet.ObstacleForecast; no weights).
     # Needs grid observations or screen_cells, and frame_stack >= 2
-    obstacle_forecast: bool = False
+    obstacle_forecast: bool = True
     # planes of a recurrent convolution down the rows of what the Q-networks read, from the destination's side
     # (formation.learn.qnet.RowScan); 0: none. Needs grid observations or screen_cells
     row_scan: int = 0
@@ -209,11 +209,11 @@ class RunConfig:
                               "allowed: 0, or any with train.screen_cells: true or game.obs_type: grid")
         if self.train.obstacle_forecast:
             if patches:
-                raise ConfigError("train.obstacle_forecast: true needs the screen read per cell; "
-                                  "allowed with train.screen_cells: true or game.obs_type: grid")
+                raise ConfigError("train.obstacle_forecast: true needs the screen read per cell; allowed: false, "
+                                  "or true with train.screen_cells: true or game.obs_type: grid")
             if self.game.frame_stack < 2:
                 raise ConfigError(f"train.obstacle_forecast: true needs two frames to see the obstacles move; "
-                                  f"allowed with game.frame_stack >= 2, not {self.game.frame_stack}")
+                                  f"allowed: false, or true with game.frame_stack >= 2 (not {self.game.frame_stack})")
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> RunConfig:
