@@ -49,6 +49,7 @@ def test_yaml_and_dotted_overrides(tmp_path):
     ({"train": {"obstacle_forecast": True, "screen_cells": False}}, "train.obstacle_forecast"),
     ({"game": {"frame_stack": 1}, "train": {"obstacle_forecast": True}}, "train.obstacle_forecast"),
     ({"train": {"row_scan": -1}}, "train.row_scan"),
+    ({"game": {"obstacle_speeds": [1, 3]}}, "train.obstacle_forecast"),
     ({"train": {"follower_labels": "leader"}}, "train.follower_labels"),
     ({"train": {"row_scan": 8, "screen_cells": False, "obstacle_forecast": False}}, "train.row_scan"),
     ({"train": {"margin_gap": -1}}, "train.margin_gap"),

@@ -27,6 +27,7 @@ PATHS = ("formation", "stock")
 EXPLORATIONS = ("independent", "joint")
 LABEL_ORDERS = ("planner", "lockstep", "toward", "safe", "widest")
 FOLLOWER_LABELS = ("teacher", "response")
+FORECAST_SPEEDS = (1, 2)  # the obstacle speeds formation.learn.qnet.ObstacleForecast reads
 
 
 @dataclass(frozen=True)
@@ -214,6 +215,10 @@ class RunConfig:
             if self.game.frame_stack < 2:
                 raise ConfigError(f"train.obstacle_forecast: true needs two frames to see the obstacles move; "
                                   f"allowed: false, or true with game.frame_stack >= 2 (not {self.game.frame_stack})")
+            if not set(self.game.obstacle_speeds) <= set(FORECAST_SPEEDS):
+                raise ConfigError(f"train.obstacle_forecast: true knows obstacle speeds {list(FORECAST_SPEEDS)} "
+                                  f"(the spec's); allowed: false, or true with game.obstacle_speeds within those "
+                                  f"(not {list(self.game.obstacle_speeds)})")
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> RunConfig:

@@ -155,7 +155,8 @@ class ObstacleForecast(nn.Module):
         self.register_buffer("lags", torch.arange(min(lags) - 1, max(lags) + 2), persistent=False)
         if tuple(range(min(lags), max(lags) + 1)) != tuple(lags):
             raise ValueError(f"lags: {lags} are not consecutive")
-        # the hypotheses (direction, speed) an obstacle may have now
+        # the hypotheses (direction, speed) an obstacle may have now: the spec's speeds 1 and 2 (the training
+        # config refuses others, formation.learn.config.FORECAST_SPEEDS)
         self.register_buffer("directions", torch.tensor([1, 1, -1, -1]), persistent=False)
         self.register_buffer("speeds", torch.tensor([1, 2, 1, 2]), persistent=False)
         self.register_buffer("rows", torch.arange(self.height), persistent=False)
