@@ -72,10 +72,6 @@ class Teacher:
         t = run.train
         return cls(run.game, t.planner_slack, t.label_order, t.robust_first_step, t.tolerant_formation)
 
-    def label(self, scenario: Scenario, first_step: bool = False) -> tuple[int, ...] | None:
-        """The joint action that labels ``scenario``; None where no path is left within the slack."""
-        return self._label(scenario, first_step)
-
     def respond(self, scenario: Scenario, joint: tuple[int, ...], leader_move: int, first_step: bool = False
                 ) -> tuple[int, ...]:
         """``joint`` (the state's label) with the followers' part answering ``leader_move``, the move the
@@ -97,7 +93,8 @@ class Teacher:
             order = sorted(order, key=lambda joint: not self._tolerant(scenario, joint))
         return order
 
-    def _label(self, scenario: Scenario, first_step: bool) -> tuple[int, ...] | None:
+    def label(self, scenario: Scenario, first_step: bool = False) -> tuple[int, ...] | None:
+        """The joint action that labels ``scenario``; None where no path is left within the slack."""
         order = self._order(scenario)
         if first_step and self.robust_first_step:
             near = self._nearest_obstacles(scenario)
