@@ -1,6 +1,6 @@
 """Learner update cost: one double-DQN update of both modules (leader and follower), in plain torch.
 
-    .venv/bin/python benchmarks/learner_update.py [--updates 40]
+    .venv/bin/python benchmarks/learner_update.py [--updates 40] [--device cuda]
 
 For setting 1 from grid observations (2 stacked frames, batch 64: the quickstart) and from pixels
 (4 stacked screens, batch 32: the throughput benchmark), prints milliseconds per update with the
@@ -8,7 +8,8 @@ modules one after the other (RLlib's order) and in two threads at once (``Format
 CPU); each with the whole observation and the widths of configs/paper.yaml, and with the default
 recipe's network (a leader window, wider layers; from pixels, reading the screen one pixel per cell as
 the default does, and in 4x4-pixel patches), and with the obstacle forecast (``train.obstacle_forecast``).
-Each torch op runs on one thread, as in the learner's Ray actor. No Ray: the data path's own cost is the difference to
+Each torch op runs on one thread, as in the learner's Ray actor; ``--device cuda`` times the same
+updates on a GPU (``resources.num_gpus_per_learner: 1``). No Ray: the data path's own cost is the difference to
 ``benchmarks/train_throughput.py``.
 """
 
@@ -28,13 +29,15 @@ from formation.learn.config import RunConfig
 from formation.learn.qnet import DuelingQNetwork, double_q_target
 
 
-def ms_per_update(shape: tuple[int, int, int], batch: int, threads: int, updates: int, window: dict) -> float:
-    nets = [DuelingQNetwork(shape, **window) for _ in range(2)]
+def ms_per_update(shape: tuple[int, int, int], batch: int, threads: int, updates: int, window: dict,
+                  device: torch.device) -> float:
+    nets = [DuelingQNetwork(shape, **window).to(device) for _ in range(2)]
     targets = [copy.deepcopy(net) for net in nets]
     optimizers = [torch.optim.Adam(net.parameters(), 1e-3) for net in nets]
-    obs = torch.randint(0, 2, (batch, *shape), dtype=torch.uint8)
-    next_obs = torch.randint(0, 2, (batch, *shape), dtype=torch.uint8)
-    actions, returns, discounts = torch.randint(0, 4, (batch, 1)), torch.randn(batch), torch.full((batch,), 0.9)
+    obs = torch.randint(0, 2, (batch, *shape), dtype=torch.uint8, device=device)
+    next_obs = torch.randint(0, 2, (batch, *shape), dtype=torch.uint8, device=device)
+    actions = torch.randint(0, 4, (batch, 1), device=device)
+    returns, discounts = torch.randn(batch, device=device), torch.full((batch,), 0.9, device=device)
 
     def update(i: int) -> None:
         q = nets[i](obs).gather(1, actions).squeeze(1)
@@ -56,17 +59,23 @@ def ms_per_update(shape: tuple[int, int, int], batch: int, threads: int, updates
 
     for _ in range(5):
         both()
+    synchronize = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    synchronize()
     start = time.perf_counter()
     for _ in range(updates):
         both()
+    synchronize()
     return (time.perf_counter() - start) / updates * 1000
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--updates", type=int, default=40)
+    parser.add_argument("--device", default="cpu", help="cpu (default) or cuda")
     args = parser.parse_args()
+    device = torch.device(args.device)
     torch.set_num_threads(1)
+    print(f"device: {torch.cuda.get_device_name(device) if device.type == 'cuda' else 'cpu, one thread per op'}")
     print(f"{'observation':<42} {'batch':>5} {'one after the other':>20} {'two threads':>12} {'speed-up':>9}")
     for obs_type, stack, batch in (("grid", 2, 64), ("pixels", 4, 32)):
         run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": obs_type, "frame_stack": stack}})
@@ -83,8 +92,8 @@ def main() -> None:
                         (", window, cells, forecast", variants[2][1])]
         for name, window in variants:
             window = {k: tuple(v) if isinstance(v, list) else v for k, v in window.items()}
-            serial = ms_per_update(shape, batch, 1, args.updates, window)
-            threaded = ms_per_update(shape, batch, 2, args.updates, window)
+            serial = ms_per_update(shape, batch, 1, args.updates, window, device)
+            threaded = ms_per_update(shape, batch, 2, args.updates, window, device)
             print(f"{obs_type + ' ' + 'x'.join(map(str, shape)) + name:<42} {batch:>5} {serial:>17.1f} ms "
                   f"{threaded:>9.1f} ms {serial / threaded:>8.2f}x")
 
