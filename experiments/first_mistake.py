@@ -1,0 +1,90 @@
+"""Who leaves the shortest paths first: play a policy greedily and, at every step, compare the team's
+joint move with every joint move that starts a shortest path (the planner's
+``shortest_first_moves``), not with one label.
+
+    .venv/bin/python experiments/first_mistake.py policies/setting1 [--episodes 300] [--seed 2000000]
+
+The first joint move of an episode that starts no shortest path is blamed on
+- "follower" when the leader's move starts one with some other follower move (the follower did
+  not answer the move the leader made);
+- "leader" when no follower move would have made the leader's move start one;
+- "no path" when no successful path was left at all (the team's earlier moves cannot be the
+  cause: this counts states the planner finds hopeless from the start).
+Prints, per outcome, how many episodes had their first departure blamed on whom; whether a
+successful path was still left after that departure ("yes", a longer one), none was ("no") or the
+move itself ended the episode ("ends there"); and whether the leader's move
+there was the default teacher's label ("label") or another move ("other").
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from formation.evaluate import play_greedy
+from formation.learn.config import TrainSettings
+from formation.learn.teacher import Teacher
+from formation.planner import shortest_first_moves, shortest_path
+from formation.policy import load
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("policy", type=Path, help="an exported policy folder or a run folder")
+    parser.add_argument("--episodes", type=int, default=300)
+    parser.add_argument("--seed", type=int, default=2_000_000)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    policy = load(args.policy)
+    config = policy.game
+    teacher = Teacher(config, TrainSettings().planner_slack, TrainSettings().label_order)  # the default labels
+    first: dict[int, tuple[str, str, str]] = {}  # episode -> (who, a path left after?, leader's move)
+    moves = collections.Counter()
+
+    def watch(game, actions: np.ndarray, live: np.ndarray) -> None:
+        for i in np.flatnonzero(live):
+            if i in first:
+                continue
+            scenario = game.scenario(i)
+            found = shortest_first_moves(scenario, config=config)
+            if found is None:
+                first[i] = ("no path", "no", "")
+                continue
+            starts = set(found[1])
+            joint = tuple(int(a) for a in actions[i])
+            moves["on a shortest path"] += joint in starts
+            moves["all"] += 1
+            if joint in starts:
+                continue
+            who = "follower" if any(s[0] == joint[0] for s in starts) else "leader"
+            after = game.scenario(i)  # the state the joint move leads to, played on a copy
+            probe = type(game)(config, batch_size=1)
+            probe.reset()
+            probe.load([after.to_dict()])
+            probe.step(np.asarray([joint]))
+            alive = not (probe.done[0] and not probe.success[0])
+            left = ("ends there" if not alive else "yes" if probe.success[0] or
+                    shortest_path(probe.scenario(0), config=config) is not None else "no")
+            label = teacher.label(scenario)
+            first[i] = (who, left, "label" if label is not None and label[0] == joint[0] else "other")
+
+    played = play_greedy(config, policy.act_batch, args.episodes, args.seed, watch=watch)
+    outcome = {i: ("success" if played["success"][i] else "leader collision" if played["leader_collided"][i]
+                   else "follower collision" if played["follower_collided"][i]
+                   else "formation break" if played["broken"][i] else "time-out") for i in range(args.episodes)}
+    print(f"{args.policy}: {args.episodes} episodes (seed {args.seed}); joint moves that start a shortest "
+          f"path: {moves['on a shortest path'] / max(moves['all'], 1):.2%} of {moves['all']}")
+    table = collections.Counter()
+    for i, end in outcome.items():
+        table[(end, *first.get(i, ("never", "yes", "")))] += 1
+    print(f"{'outcome':<20} {'first off':<10} {'path left after':<16} {'leader moved':<13} {'episodes':>8}")
+    for (end, who, left, leader), n in sorted(table.items()):
+        print(f"{end:<20} {who:<10} {left:<16} {leader:<13} {n:>8}")
+
+
+if __name__ == "__main__":
+    main()
