@@ -20,6 +20,7 @@ from ray.rllib.core.rl_module.rl_module import RLModule
 
 from formation.evaluate import play_greedy
 from formation.learn.config import RunConfig
+from formation.learn.qnet import team_q_values
 from formation.learn.rollout_actor import module_of_agent
 from formation.learn.teacher import Teacher
 
@@ -43,8 +44,8 @@ def main() -> None:
 
     def act(obs: np.ndarray) -> np.ndarray:
         with torch.no_grad():
-            greedy = {m: module.q_network(torch.from_numpy(obs)).argmax(1).numpy() for m, module in modules.items()}
-        return np.stack([greedy[m] for m in names], axis=1)
+            q = {m: module.q_network(torch.from_numpy(obs)).numpy() for m, module in modules.items()}
+        return team_q_values(q, names).argmax(-1)
 
     def compare(game, actions: np.ndarray, live: np.ndarray) -> None:
         nonlocal labelled

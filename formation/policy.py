@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from formation.config import ConfigError, GameConfig
-from formation.learn.qnet import DuelingQNetwork
+from formation.learn.qnet import DuelingQNetwork, team_q_values
 
 FORMAT_VERSION = 1
 CARD = "policy.json"
@@ -57,17 +57,18 @@ class NetworkSpec:
     cells: tuple[int, int] | None = None  # a screen read one pixel per cell of this board
     forecast: bool = False  # the obstacle forecast planes (formation.learn.qnet.ObstacleForecast)
     row_scan: int = 0  # planes of a RowScan (formation.learn.qnet)
+    answers_leader: bool = False  # 16 Q-values, one per (leader's move, own move) (formation.learn.qnet)
 
     def build(self) -> DuelingQNetwork:
         return DuelingQNetwork(self.obs_shape, high=self.high, hidden=self.hidden, channels=self.channels,
                                window=self.window, frame_channels=self.frame_channels, cells=self.cells,
-                               forecast=self.forecast, row_scan=self.row_scan)
+                               forecast=self.forecast, row_scan=self.row_scan, answers_leader=self.answers_leader)
 
     def to_dict(self) -> dict[str, Any]:
         return {"obs_shape": list(self.obs_shape), "high": self.high, "hidden": self.hidden,
                 "channels": list(self.channels), "window": list(self.window) if self.window is not None else None,
                 "frame_channels": self.frame_channels, "cells": list(self.cells) if self.cells is not None else None,
-                "forecast": self.forecast, "row_scan": self.row_scan}
+                "forecast": self.forecast, "row_scan": self.row_scan, "answers_leader": self.answers_leader}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> NetworkSpec:
@@ -78,7 +79,8 @@ class NetworkSpec:
                    window=tuple(int(v) for v in window) if window is not None else None,
                    frame_channels=int(frame_channels) if frame_channels is not None else None,
                    cells=tuple(int(v) for v in cells) if cells is not None else None,
-                   forecast=bool(values.get("forecast", False)), row_scan=int(values.get("row_scan", 0)))
+                   forecast=bool(values.get("forecast", False)), row_scan=int(values.get("row_scan", 0)),
+                   answers_leader=bool(values.get("answers_leader", False)))
 
 
 class Policy:
@@ -112,15 +114,17 @@ class Policy:
         return dict(zip(self.agents, self.agent_modules))
 
     def q_values(self, obs: np.ndarray, module: str) -> np.ndarray:
-        """Q-values (N, 4) of one module for uint8 observations (N, h, w, c)."""
+        """Q-values of one module for uint8 observations (N, h, w, c): (N, 4), or (N, 16) for a module
+        that answers the leader (one per (leader's move, own move), row by row)."""
         with torch.no_grad():
             return self.networks[module](torch.from_numpy(np.ascontiguousarray(obs))).numpy()
 
     def q_batch(self, obs: np.ndarray) -> np.ndarray:
         """Every agent's Q-values (N, 1+k, 4) for a batch of observations (N, h, w, c) every agent shares;
-        each module runs once, whatever the number of agents using it."""
+        each module runs once, whatever the number of agents using it. A follower that answers the
+        leader reads the row of the leader's greedy move."""
         by_module = {m: self.q_values(obs, m) for m in sorted(set(self.agent_modules))}
-        return np.stack([by_module[m] for m in self.agent_modules], axis=1)
+        return team_q_values(by_module, self.agent_modules)
 
     def act_batch(self, obs: np.ndarray) -> np.ndarray:
         """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares
@@ -137,11 +141,14 @@ class Policy:
         for agent in observations:
             by_module.setdefault(self.module_of[agent], []).append(agent)
         actions: dict[str, int] = {}
-        with torch.no_grad():
-            for module, agents in by_module.items():
-                x = torch.from_numpy(np.stack([np.asarray(observations[a]) for a in agents]))
-                for agent, action in zip(agents, self.networks[module](x).argmax(dim=-1).tolist()):
-                    actions[agent] = int(action)
+        leader = self.agent_modules[0]
+        for module, agents in by_module.items():
+            x = np.stack([np.asarray(observations[a]) for a in agents])
+            q = {module: self.q_values(x, module)}
+            if q[module].shape[-1] != 4:  # it answers the leader's greedy move, from its own screen
+                q[leader] = self.q_values(x, leader)
+            for agent, action in zip(agents, team_q_values(q, [leader, module])[:, 1].argmax(-1).tolist()):
+                actions[agent] = int(action)
         return {a: actions[a] for a in observations}
 
     def card(self) -> dict[str, Any]:
@@ -195,14 +202,15 @@ def run_specs(run) -> tuple[dict[str, NetworkSpec], list[str]]:
     """The network of each module and the module of each agent, as training builds them
     (``formation.learn.algorithm.module_specs``)."""
     from formation.learn.algorithm import leader_window_config
-    from formation.learn.rollout_actor import module_of_agent, spaces_of
+    from formation.learn.rollout_actor import answers_leader, module_of_agent, spaces_of
 
     obs_space, _ = spaces_of(run)
     shape = tuple(int(v) for v in obs_space.shape)
-    spec = NetworkSpec.from_dict({"obs_shape": shape, "high": float(obs_space.high.max()), "hidden": run.train.hidden,
-                                  "channels": run.train.channels, **leader_window_config(run, shape)})
+    values = {"obs_shape": shape, "high": float(obs_space.high.max()), "hidden": run.train.hidden,
+              "channels": run.train.channels, **leader_window_config(run, shape)}
     agent_modules = module_of_agent(run)
-    return {m: spec for m in sorted(set(agent_modules))}, agent_modules
+    return {m: NetworkSpec.from_dict({**values, "answers_leader": answers_leader(run, m)})
+            for m in sorted(set(agent_modules))}, agent_modules
 
 
 def _load_run(run_dir: Path) -> Policy:

@@ -28,6 +28,45 @@ def test_followers_sharing_a_policy_each_contribute_their_own_rows():
     np.testing.assert_allclose(follower[DISCOUNTS], [0.9, 0.0, 0.81, 0.9, 0.0, 0.81])
 
 
+def test_a_follower_that_answers_the_leader_gets_pairs_with_the_leaders_move():
+    sample = {"obs": np.zeros((3, 2, 2, 1), np.uint8), "next_obs": np.zeros((3, 2, 2, 1), np.uint8),
+              "actions": np.array([[0, 1], [3, 0], [2, 2]]), "returns": np.zeros((3, 2), np.float32),
+              "discounts": np.ones(3, np.float32), "labels": np.array([[-1, 1], [3, -1], [0, 3]]),
+              "weights": np.ones(3, np.float32)}
+    batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}))
+    assert batches["leader"]["actions"].tolist() == [0, 3, 2]  # the leader's own, unchanged
+    assert batches["leader"][LABELS].tolist() == [-1, 3, 0]
+    assert batches["follower"]["actions"].tolist() == [0 * 4 + 1, 3 * 4 + 0, 2 * 4 + 2]
+    assert batches["follower"][LABELS].tolist() == [0 * 4 + 1, -1, 2 * 4 + 3]  # no label stays none
+
+
+def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_leaders_row():
+    from types import SimpleNamespace
+
+    import torch
+
+    from formation.learn.learner import WEIGHTS, FormationLearner
+    from formation.learn.qnet import large_margin
+
+    q = torch.zeros(1, 16)
+    q[0, 4 * 2 + 1] = 3.0  # in the row of leader move 2, own move 1 stands highest
+    q[0, 4 * 0 + 0] = 9.0  # far higher, but in another row: it must not count
+    labelled = 4 * 2 + 1
+    batch = {"actions": torch.tensor([labelled]), "n_step_returns": torch.zeros(1), "n_step_discounts": torch.zeros(1),
+             "teacher_labels": torch.tensor([labelled]), WEIGHTS: torch.ones(1)}
+    fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(1, 16), "qf_target_next_preds": torch.zeros(1, 16)}
+    learner = FormationLearner.__new__(FormationLearner)
+    learner._priority, learner._stats = {}, {}
+    config = SimpleNamespace(margin=1.0, margin_gap=5.0)
+    loss = learner.compute_loss_for_module(module_id="follower", config=config, batch=batch, fwd_out=fwd)
+    td = torch.nn.functional.smooth_l1_loss(torch.tensor([3.0]), torch.zeros(1))
+    row = q[0, 8:12].unsqueeze(0)
+    expected = td + large_margin(row, torch.tensor([1]), 5.0).mean()
+    torch.testing.assert_close(loss, expected)
+    # the gap (5) less the label's lead in its row (3); with the other row's 9 it would be 9 + 5 - 3
+    assert large_margin(row, torch.tensor([1]), 5.0).item() == 2.0
+
+
 def test_threaded_module_updates_equal_rllibs_serial_update():
     """On a CPU the learner updates its modules in parallel threads; the weights after an update must
     be those of RLlib's serial update on the same batch."""

@@ -217,3 +217,31 @@ def test_an_export_of_networks_that_read_screens_per_cell_loads_them_alike(tmp_p
         obs = np.stack([observations[a] for a in observations])
         assert np.array_equal(policy.q_values(obs, module), again.q_values(obs, module))
     assert again.act(observations) == policy.act(observations)
+
+
+def test_a_follower_that_answers_the_leader_acts_on_the_leaders_move_after_export(tmp_path):
+    import torch
+
+    from formation.policy import Policy, export, run_specs
+
+    run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "grid", "frame_stack": 2},
+                               "train": {"channels": [4, 8, 8], "hidden": 16, "follower_answers_leader": True}})
+    specs, agent_modules = run_specs(run)
+    assert specs["follower"].answers_leader and not specs["leader"].answers_leader
+    torch.manual_seed(0)
+    policy = Policy(run.game, {m: spec.build() for m, spec in specs.items()}, specs, agent_modules, source="test")
+    folder = export(policy, tmp_path / "answers")
+    card = json.loads((folder / "policy.json").read_text())
+    assert card["networks"]["follower"]["answers_leader"] is True
+    again = load(folder)
+    env = parallel_env(**again.env_config)
+    observations, _ = env.reset(seed=3)
+    obs = np.stack([observations["leader"]])
+    leader_q, follower_q = again.q_values(obs, "leader"), again.q_values(obs, "follower")
+    assert follower_q.shape == (1, 16)
+    leader_move = int(leader_q.argmax())
+    answer = int(follower_q[0].reshape(4, 4)[leader_move].argmax())
+    assert again.act(observations) == {"leader": leader_move, "follower": answer}
+    assert again.act({"follower": observations["follower"]}) == {"follower": answer}  # it needs no message
+    assert again.act_batch(obs).tolist() == [[leader_move, answer]]
+    np.testing.assert_array_equal(again.q_batch(obs)[0, 1], follower_q[0, 4 * leader_move: 4 * leader_move + 4])

@@ -1,5 +1,6 @@
 """The DQN arithmetic against hand computations, and the network's input handling."""
 
+import numpy as np
 import torch
 
 from formation.learn.qnet import DuelingQNetwork, LeaderWindow, double_q_target, dueling, large_margin
@@ -184,3 +185,24 @@ def test_row_scan_carries_the_top_row_down_one_column_per_row_at_most():
         assert reached[row].nonzero().flatten().tolist() == list(range(max(0, 4 - row), min(9, 4 + row + 1)))
     x[0, 0, 2, :] = -10.0  # a row that blocks everything: nothing below it
     assert not (scan(x)[0, 1, 2:] > 0).any()
+
+
+def test_a_follower_that_answers_the_leader_reads_the_row_of_the_leaders_move():
+    from formation.learn.qnet import team_q_values
+
+    rng = np.random.default_rng(0)
+    leader, follower = rng.normal(size=(5, 4)), rng.normal(size=(5, 16))
+    plain = rng.normal(size=(5, 4))
+    q = {"leader": leader, "follower": follower, "plain": plain}
+    team = team_q_values(q, ["leader", "follower", "plain"])
+    assert team.shape == (5, 3, 4)
+    np.testing.assert_array_equal(team[:, 0], leader)
+    np.testing.assert_array_equal(team[:, 2], plain)  # a module of four Q-values reads them as they are
+    for i in range(5):  # the row of the leader's greedy move
+        np.testing.assert_array_equal(team[i, 1], follower[i].reshape(4, 4)[leader[i].argmax()])
+    moves = np.array([3, 0, 1, 2, 3])
+    played = team_q_values(q, ["leader", "follower"], leader_moves=moves)
+    for i in range(5):  # or of the move the leader plays
+        np.testing.assert_array_equal(played[i, 1], follower[i, 4 * moves[i]: 4 * moves[i] + 4])
+    net = DuelingQNetwork((9, 9, 8), high=1.0, answers_leader=True)
+    assert net(torch.zeros(2, 9, 9, 8, dtype=torch.uint8)).shape == (2, 16)

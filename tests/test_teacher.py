@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+import torch
 
 from formation.config import GameConfig
 from formation.game import BatchedGame
@@ -251,7 +252,8 @@ def test_rollout_actor_learns_from_response_labels_but_demonstrations_play_the_t
     # a leader that never makes the teacher's move, on a later step (robust first-step labels stay)
     game.steps[:] = 1
     greedy = np.array([[((j[0] if j else 0) + 1) % 4, 0] for j in first])
-    joints, labels = actor._planner_labels(greedy)
+    joints = actor._teacher_joints()
+    labels = actor._labels(joints, greedy, greedy)
     changed = 0
     for i, scenario in enumerate(scenarios):
         joint = teacher.label(scenario)
@@ -260,3 +262,75 @@ def test_rollout_actor_learns_from_response_labels_but_demonstrations_play_the_t
         assert tuple(labels[i]) == expected and labels[i, 0] == joint[0]
         changed += tuple(labels[i]) != joint
     assert (changed > 0) == (follower_labels == "response")
+
+
+def test_answers_to_the_leaders_move_start_a_shortest_path_else_survive_the_step():
+    teacher = Teacher(SMALL, slack=200, order="lockstep")
+    shortest_answers = surviving_answers = none = 0
+    for scenario in scenarios(SMALL, range(40)):
+        joint = teacher.label(scenario)
+        if joint is None:
+            continue
+        assert teacher.answer(scenario, joint, joint[0]) == joint  # the label's own leader move: the label
+        best = steps_after(SMALL, scenario, joint)
+        for leader_move in set(range(4)) - {joint[0]}:
+            answer = teacher.answer(scenario, joint, leader_move)
+            with_leader = [j for j in order_at(scenario) if j[0] == leader_move]
+            after = {j: steps_after(SMALL, scenario, j) for j in with_leader}
+            shortest = [j for j in with_leader if after[j] == best]
+            if shortest:  # the first, in the lockstep order, that keeps a shortest path
+                assert answer == shortest[0]
+                shortest_answers += 1
+                continue
+            surviving = [j for j in with_leader if not ended(scenario, j)]
+            if surviving:  # else the first after which the team still plays
+                assert answer == surviving[0]
+                surviving_answers += 1
+            else:
+                assert answer is None
+                none += 1
+    assert shortest_answers > 20 and surviving_answers > 20
+
+
+def ended(scenario, joint) -> bool:
+    """Whether ``joint`` ends the game in ``scenario`` without winning it."""
+    game = BatchedGame(SMALL, batch_size=1)
+    game.load([scenario])
+    game.step(np.array([joint]))
+    return bool(game.done[0] and not game.success[0])
+
+
+def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_it_plays():
+    pytest.importorskip("ray")
+    from formation.learn.algorithm import build_algorithm_config
+    from formation.learn.config import RunConfig
+    from formation.learn.rollout_actor import RolloutActor
+
+    run = RunConfig.load("configs/smoke.yaml", {"train.follower_answers_leader": True, "train.epsilon_start": 0.5,
+                                                "train.epsilon_end": 0.5})
+    actor = RolloutActor(config=build_algorithm_config(run))
+    game, teacher = actor.rollout.game, actor._teacher
+    obs = actor.rollout.observations
+    greedy, actions = actor._actions(obs)
+    with torch.no_grad():
+        leader_q = actor.module["leader"].q_network(torch.from_numpy(obs)).numpy()
+        follower_q = actor.module["follower"].q_network(torch.from_numpy(obs)).numpy().reshape(-1, 4, 4)
+    assert follower_q.shape[0] == len(obs)
+    assert (greedy[:, 0] == leader_q.argmax(1)).all()
+    rows = np.arange(len(obs))
+    assert (greedy[:, 1] == follower_q[rows, greedy[:, 0]].argmax(1)).all()  # the answer to the greedy move
+    assert (actions[:, 1] == follower_q[rows, actions[:, 0]].argmax(1)).all()  # and to the move played
+    assert (actions[:, 0] != greedy[:, 0]).any()  # the leader explored somewhere (epsilon 0.5)
+    # labels: the teacher's answer to the move the leader plays
+    game.steps[:] = 1
+    joints = actor._teacher_joints()
+    played = np.array([[((j[0] + 1) % 4) if j[0] >= 0 else 0, 0] for j in joints])
+    labels = actor._labels(joints, greedy, played)
+    for i in range(game.batch_size):
+        joint = teacher.label(game.scenario(i))
+        if joint is None:
+            assert (labels[i] == -1).all()
+            continue
+        answer = teacher.answer(game.scenario(i), joint, int(played[i, 0]))
+        assert labels[i, 0] == joint[0]  # the leader learns the teacher's move
+        assert labels[i, 1] == (answer[1] if answer is not None else -1)

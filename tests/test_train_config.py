@@ -51,6 +51,8 @@ def test_yaml_and_dotted_overrides(tmp_path):
     ({"train": {"row_scan": -1}}, "train.row_scan"),
     ({"game": {"obstacle_speeds": [1, 3]}}, "train.obstacle_forecast"),
     ({"train": {"follower_labels": "leader"}}, "train.follower_labels"),
+    ({"train": {"follower_answers_leader": "yes"}}, "train.follower_answers_leader"),
+    ({"train": {"follower_answers_leader": True, "follower_labels": "response"}}, "train.follower_labels"),
     ({"train": {"row_scan": 8, "screen_cells": False, "obstacle_forecast": False}}, "train.row_scan"),
     ({"train": {"margin_gap": -1}}, "train.margin_gap"),
     ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),
@@ -101,12 +103,14 @@ def test_a_saved_run_from_before_a_key_existed_keeps_what_it_trained_with(tmp_pa
     del saved["train"]["screen_cells"]  # and before screens were read per cell: 4x4-pixel patches
     del saved["train"]["obstacle_forecast"]
     del saved["train"]["row_scan"]
+    del saved["train"]["follower_answers_leader"]
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(saved))
     assert RunConfig.load_saved(path).train.leader_window is None
     assert RunConfig.load_saved(path).train.screen_cells is False
     assert RunConfig.load_saved(path).train.obstacle_forecast is False
     assert RunConfig.load_saved(path).train.row_scan == 0
+    assert RunConfig.load_saved(path).train.follower_answers_leader is False
     assert RunConfig.load(path).train.leader_window == (12, 3, 10)  # a plain config takes today's default
     assert RunConfig.load(path).train.screen_cells is True
     assert RunConfig.load(path).train.obstacle_forecast is True

@@ -17,12 +17,12 @@ import pickle
 import time
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import ray
 import torch
 from ray.rllib.algorithms.dqn import DQN, DQNConfig
 from ray.rllib.core import COMPONENT_RL_MODULE
-from ray.rllib.core.columns import Columns
 from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 from ray.rllib.utils.metrics import (
@@ -39,8 +39,9 @@ from formation.game.render import GRID_PLANES
 from formation.learn.config import RunConfig
 from formation.learn.learner import FormationLearner
 from formation.learn.module import DuelingQModule
+from formation.learn.qnet import team_q_values
 from formation.learn.replay_actor import ReplayActor
-from formation.learn.rollout_actor import RolloutActor, module_of_agent, spaces_of
+from formation.learn.rollout_actor import RolloutActor, answers_leader, module_of_agent, spaces_of
 
 
 def policy_mapping_fn(agent_id, episode=None, **kwargs) -> str:
@@ -95,8 +96,10 @@ def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLMo
     model_config = {"hidden": t.hidden, "channels": list(t.channels),
                     "epsilon": [(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)],
                     **leader_window_config(run, obs_space.shape)}
-    return {m: RLModuleSpec(module_class=DuelingQModule, observation_space=obs_space, action_space=act_space,
-                            model_config=dict(model_config), inference_only=inference_only)
+    return {m: RLModuleSpec(module_class=DuelingQModule, observation_space=obs_space,
+                            action_space=gym.spaces.Discrete(16) if answers_leader(run, m) else act_space,
+                            model_config={**model_config, "answers_leader": answers_leader(run, m)},
+                            inference_only=inference_only)
             for m in sorted(set(module_of_agent(run)))}
 
 
@@ -231,8 +234,8 @@ class GreedyEvaluationMixin:
         def act(obs: np.ndarray) -> np.ndarray:
             x = torch.from_numpy(obs)
             with torch.no_grad():
-                greedy = {m: modules[m].forward_inference({Columns.OBS: x})[Columns.ACTIONS].numpy() for m in used}
-            return np.stack([greedy[m] for m in names], axis=1)
+                q = {m: modules[m].q_network(x).numpy() for m in used}
+            return team_q_values(q, names).argmax(-1)
 
         return play_greedy(run.game, act, episodes or run.eval.episodes, run.eval.seed if seed is None else seed,
                            record=record)
@@ -303,7 +306,8 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
             lambda runner: runner.set_replay(replays[(getattr(runner, "worker_index", 0) or 0) % n]),
             remote_worker_ids=runner_ids, local_env_runner=False)
         agents = module_of_agent(self.run)
-        self.learner_group.foreach_learner(lambda learner: learner.set_replays(replays, agents))
+        answering = [m for m in set(agents) if answers_leader(self.run, m)]
+        self.learner_group.foreach_learner(lambda learner: learner.set_replays(replays, agents, answering))
 
     def restore_env_runners(self, env_runner_group):
         restored = super().restore_env_runners(env_runner_group)

@@ -73,6 +73,10 @@ class TrainSettings:
     # best answer the leader network's own greedy move (formation.learn.teacher.Teacher.respond), so that a
     # follower learns to keep formation with the leader it has rather than with the teacher
     follower_labels: str = "teacher"
+    # the followers' networks answer the leader: one Q-value per (leader's move, own move), and a follower
+    # makes its move in the row of the move the leader makes (formation.learn.qnet.team_q_values); DAgger
+    # labels it with the teacher's answer to that move (formation.learn.teacher.Teacher.answer)
+    follower_answers_leader: bool = False
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True
     hidden: int = 256
@@ -119,7 +123,7 @@ class TrainSettings:
         _integer(self, "row_scan", 0)
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
-                     "tolerant_formation", "obstacle_forecast"):
+                     "tolerant_formation", "obstacle_forecast", "follower_answers_leader"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:
@@ -131,12 +135,17 @@ class TrainSettings:
         if self.follower_labels not in FOLLOWER_LABELS:
             raise ConfigError(f"train.follower_labels: {self.follower_labels!r} is not allowed; "
                               f"allowed: {', '.join(FOLLOWER_LABELS)}")
+        if self.follower_answers_leader and self.follower_labels != "teacher":
+            raise ConfigError(f"train.follower_labels: {self.follower_labels!r} is not allowed with "
+                              "train.follower_answers_leader: true (its labels answer the leader's move); "
+                              "allowed: teacher")
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
         if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0
-                                     or self.prioritized or self.dagger):
+                                     or self.prioritized or self.dagger or self.follower_answers_leader):
             raise ConfigError("train.path: stock runs RLlib's DQN on the paper's reward alone; "
-                              "set train.shaping: 0, demonstrations: 0, margin: 0, prioritized: false, dagger: false")
+                              "set train.shaping: 0, demonstrations: 0, margin: 0, prioritized: false, dagger: false, "
+                              "follower_answers_leader: false")
         if self.leader_window is not None and (
                 not isinstance(self.leader_window, tuple) or len(self.leader_window) != 3
                 or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in self.leader_window)):
@@ -274,7 +283,8 @@ class RunConfig:
 
 # keys added to the config after runs were saved without them, with the value those runs trained with
 LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("train", "screen_cells"): False,
-                                          ("train", "obstacle_forecast"): False, ("train", "row_scan"): 0}
+                                          ("train", "obstacle_forecast"): False, ("train", "row_scan"): 0,
+                                          ("train", "follower_answers_leader"): False}
 
 
 def _read_yaml(path: str | Path) -> dict[str, Any]:

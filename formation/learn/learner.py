@@ -20,27 +20,34 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
-from formation.learn.qnet import double_q_target
+from formation.learn.qnet import N_ACTIONS, double_q_target
 from formation.learn.qnet import large_margin as large_margin_loss
 
 RETURNS, DISCOUNTS, LABELS, WEIGHTS = "n_step_returns", "n_step_discounts", "teacher_labels", "weights"
 
 
-def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str]) -> dict[str, dict[str, np.ndarray]]:
+def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
+                   answering: frozenset[str] = frozenset()) -> dict[str, dict[str, np.ndarray]]:
     """Split a replay sample (all agents) into one batch per module; agents that share a module
-    (followers with one policy) contribute one row each for every sampled step."""
+    (followers with one policy) contribute one row each for every sampled step. A module in
+    ``answering`` (it answers the leader) gets actions and labels as pairs with the leader's move,
+    ``4 * leader + own`` (its Q-values' index), labels -1 where it has none."""
     rows: dict[str, list[int]] = {}
     for agent, module in enumerate(module_of_agent):
         rows.setdefault(module, []).append(agent)
+    leader = sample["actions"][:, 0].astype(np.int64)
     out = {}
     for module, agents in rows.items():
         shared = {key: _repeat(sample[key], len(agents)) for key in ("obs", "next_obs", "discounts", "weights")}
+        actions = [sample["actions"][:, a] for a in agents]
+        labels = [sample["labels"][:, a] for a in agents]
+        if module in answering:
+            actions = [4 * leader + a for a in actions]
+            labels = [np.where(b >= 0, 4 * leader + b, -1) for b in labels]
         out[module] = {Columns.OBS: shared["obs"], Columns.NEXT_OBS: shared["next_obs"],
-                       Columns.ACTIONS: np.concatenate([sample["actions"][:, a] for a in agents]),
+                       Columns.ACTIONS: np.concatenate(actions),
                        RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
-                       DISCOUNTS: shared["discounts"],
-                       LABELS: np.concatenate([sample["labels"][:, a] for a in agents]),
-                       WEIGHTS: shared["weights"]}
+                       DISCOUNTS: shared["discounts"], LABELS: np.concatenate(labels), WEIGHTS: shared["weights"]}
     return out
 
 
@@ -80,9 +87,11 @@ class FormationLearner(DQNTorchLearner):
         self.apply_gradients(self.postprocess_gradients(gradients))
         return {m: r[0] for m, r in results.items()}, {m: r[1] for m, r in results.items()}, {}
 
-    def set_replays(self, handles: list, module_of_agent: list[str]) -> bool:
+    def set_replays(self, handles: list, module_of_agent: list[str], answering: list[str] = ()) -> bool:
+        """The replay shards to pull from, each agent's module, and the modules that answer the leader."""
         self._replays = list(handles)
         self._module_of_agent = list(module_of_agent)
+        self._answering = frozenset(answering)
         self._prefetch = None
         self._turn = 0
         self._priority: dict[str, np.ndarray] = {}
@@ -105,7 +114,13 @@ class FormationLearner(DQNTorchLearner):
             taught = labels >= 0
             if taught.any():
                 # DQfD: J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), a_E the teacher's (planner's) action
-                large_margin = large_margin_loss(q, labels.clamp(min=0), config.margin_gap)
+                labels = labels.clamp(min=0)
+                if q.shape[1] == N_ACTIONS ** 2:  # a module that answers the leader: the row of the leader's move
+                    q_row = q.view(-1, N_ACTIONS, N_ACTIONS).gather(1, (labels // N_ACTIONS).view(-1, 1, 1).expand(
+                        -1, 1, N_ACTIONS)).squeeze(1)
+                    large_margin = large_margin_loss(q_row, labels % N_ACTIONS, config.margin_gap)
+                else:
+                    large_margin = large_margin_loss(q, labels, config.margin_gap)
                 loss = loss + config.margin * large_margin[taught].mean()
                 # prioritized replay also revisits the states where the module disagrees with the teacher
                 priority = priority + config.margin * (large_margin.detach() * taught)
@@ -136,7 +151,7 @@ class FormationLearner(DQNTorchLearner):
                 break
             self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma, min_records)
             incarnation = seen[index] = sample.pop("incarnation")
-            batches = module_batches(sample, self._module_of_agent)
+            batches = module_batches(sample, self._module_of_agent, self._answering)
             n = len(sample["ids"])
             batch = MultiAgentBatch({m: SampleBatch(b) for m, b in batches.items()}, env_steps=n)
             # DQNLearner syncs target networks by this count: ours counts learner updates.

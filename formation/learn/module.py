@@ -3,7 +3,10 @@
 It implements RLlib's ``QNetAPI`` and ``TargetNetworkAPI``, so RLlib's DQN learner (the stock
 path) and ours both train it, and ``InferenceOnlyAPI``, so rollout actors get weights without
 the target network. ``model_config``: ``hidden``, ``channels``, ``window``, ``frame_channels``, ``cells``,
-``forecast``, ``row_scan`` (see ``formation.learn.qnet``).
+``forecast``, ``row_scan``, ``answers_leader`` (see ``formation.learn.qnet``). A module that answers
+the leader has 16 actions, (leader's move, own move) as ``4 * leader + own``: its greedy and
+exploring forward passes pick among those, so rollouts and evaluation pick its row themselves
+(``formation.learn.qnet.team_q_values``).
 """
 
 from __future__ import annotations
@@ -31,7 +34,8 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
                                          window=tuple(window) if window is not None else None,
                                          frame_channels=cfg.get("frame_channels"), cells=cfg.get("cells"),
                                          forecast=bool(cfg.get("forecast", False)),
-                                         row_scan=int(cfg.get("row_scan", 0)))
+                                         row_scan=int(cfg.get("row_scan", 0)),
+                                         answers_leader=bool(cfg.get("answers_leader", False)))
         # RLlib's DQNConfig puts an epsilon schedule into every module's model_config.
         self.epsilon_schedule = Scheduler(fixed_value_or_schedule=cfg.get("epsilon", 0.05), framework="torch")
 

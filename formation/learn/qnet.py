@@ -13,10 +13,15 @@ With a ``ScreenCells`` reader the network first takes one pixel per cell of the 
 screen (the renderer paints a whole cell in one colour, so nothing on the screen is lost) and
 reads the result as a grid, at one entry per cell: on settings 3-4 a cell is 1.68 pixels wide,
 and 4x4 patches would mix two or three cells.
+
+A network that *answers the leader* (a follower's, ``train.follower_answers_leader``) outputs one
+Q-value per pair (leader's move, own move), 16 in all, row by row: the follower picks its move in
+the row of the move the leader makes (``team_q_values``).
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -50,6 +55,21 @@ def double_q_target(returns: torch.Tensor, discounts: torch.Tensor, q_next_onlin
     episode terminated within the n steps."""
     best = q_next_online.argmax(dim=1, keepdim=True)
     return returns + discounts * q_next_target.gather(1, best).squeeze(1)
+
+
+def team_q_values(q: dict[str, np.ndarray], modules: list[str], leader_moves: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """Every agent's Q-values of its four moves, (N, agents, 4), from each module's output ``q``
+    (module -> (N, 4), or (N, 16) for a module that answers the leader); ``modules``: each agent's
+    module, leader first. An answering module's agents read the row of ``leader_moves``, the moves the
+    leader makes (N,); None: the leader's greedy moves, which a follower computes from its own screen
+    with the leader's network, since both see the same."""
+    if leader_moves is None:
+        leader_moves = q[modules[0]].argmax(-1)
+    rows = np.arange(len(leader_moves))
+    answered = {m: v.reshape(-1, N_ACTIONS, N_ACTIONS)[rows, leader_moves] if v.shape[-1] == N_ACTIONS ** 2 else v
+                for m, v in q.items()}
+    return np.stack([answered[m] for m in modules], axis=1)
 
 
 def large_margin(q: torch.Tensor, labels: torch.Tensor, gap: float) -> torch.Tensor:
@@ -237,12 +257,13 @@ class DuelingQNetwork(nn.Module):
     ``window`` is then in cells, and the encoder's first layer reads every cell.
     ``forecast``: add the planes of an ``ObstacleForecast`` to what the encoder reads (grids, or screens
     read per cell, of two frames or more). ``row_scan``: add that many planes of a ``RowScan`` before
-    the encoder (0: none)."""
+    the encoder (0: none). ``answers_leader``: 16 Q-values, one per (leader's move, own move), row by
+    row, instead of 4."""
 
     def __init__(self, obs_shape: tuple[int, int, int], high: float = 255.0, hidden: int = 128,
                  channels: tuple[int, int, int] = (16, 32, 32), window: tuple[int, int, int] | None = None,
                  frame_channels: int | None = None, cells: tuple[int, int] | None = None, forecast: bool = False,
-                 row_scan: int = 0):
+                 row_scan: int = 0, answers_leader: bool = False):
         super().__init__()
         self.obs_shape = tuple(obs_shape)
         screens = min(obs_shape[:2]) >= 64
@@ -277,7 +298,8 @@ class DuelingQNetwork(nn.Module):
         with torch.no_grad():
             n = self.encoder(torch.zeros(1, seen[2], seen[0], seen[1])).shape[1]
         self.value = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, 1))
-        self.advantage = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, N_ACTIONS))
+        outputs = N_ACTIONS ** 2 if answers_leader else N_ACTIONS
+        self.advantage = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, outputs))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         if self.cells is not None:

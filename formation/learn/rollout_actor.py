@@ -14,13 +14,13 @@ import numpy as np
 import ray
 import torch
 from ray.rllib.core import COMPONENT_RL_MODULE
-from ray.rllib.core.columns import Columns
 from ray.rllib.env import INPUT_ENV_SINGLE_SPACES, INPUT_ENV_SPACES
 from ray.rllib.env.env_runner import EnvRunner
 from ray.rllib.utils.checkpoints import Checkpointable
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_NO
 
 from formation.learn.config import RunConfig, TrainSettings
+from formation.learn.qnet import team_q_values
 from formation.learn.rollout import GameRollout, concatenate
 from formation.learn.shaping import Potential
 from formation.learn.teacher import Teacher
@@ -39,6 +39,12 @@ def module_of_agent(run: RunConfig) -> list[str]:
     if run.train.followers_share_policy:
         return ["leader"] + ["follower"] * run.game.n_followers
     return names
+
+
+def answers_leader(run: RunConfig, module: str) -> bool:
+    """Whether ``module``'s network answers the leader (``train.follower_answers_leader``): every
+    module but the leader's."""
+    return run.train.follower_answers_leader and module != module_of_agent(run)[0]
 
 
 def epsilon_at(env_steps: int, train: TrainSettings) -> float:
@@ -118,31 +124,51 @@ class RolloutActor(EnvRunner, Checkpointable):
         path = shortest_path(self.rollout.game.scenario(game), config=self.run.game)
         self._plans[game] = list(path or [])
 
-    def _planner_labels(self, greedy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """DAgger: the teacher's joint action in every game's present state (-1 where it has none), and
-        the labels to learn from: the same, or with ``train.follower_labels: response`` the followers'
-        moves answering the leader's ``greedy`` move."""
+    def _teacher_joints(self) -> np.ndarray:
+        """DAgger: the teacher's joint action in every game's present state, -1 where it has none."""
         game, joints = self.rollout.game, np.full((self.rollout.batch_size, self.rollout.n_agents), -1, np.int8)
-        labels = joints.copy()
-        respond = self.run.train.follower_labels == "response"
         for i in range(self.rollout.batch_size):
-            scenario, first = game.scenario(i), game.steps[i] == 0
-            joint = self._teacher.label(scenario, first_step=first)
+            joint = self._teacher.label(game.scenario(i), first_step=game.steps[i] == 0)
             if joint is not None:
                 joints[i] = joint
-                labels[i] = self._teacher.respond(scenario, joint, int(greedy[i, 0]), first) if respond else joint
-        return joints, labels
+        return joints
+
+    def _labels(self, joints: np.ndarray, greedy: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        """The labels to learn from: the teacher's ``joints``; with ``train.follower_labels: response``
+        the followers' moves answering the leader's ``greedy`` move; with
+        ``train.follower_answers_leader`` the teacher's answer to the move the leader plays
+        (``actions``), -1 for the followers where no move of theirs survives it."""
+        t, game = self.run.train, self.rollout.game
+        if t.follower_labels != "response" and not t.follower_answers_leader:
+            return joints
+        labels = joints.copy()
+        for i in np.flatnonzero(joints[:, 0] >= 0):
+            scenario, first, joint = game.scenario(i), game.steps[i] == 0, tuple(int(a) for a in joints[i])
+            if t.follower_answers_leader:
+                answer = self._teacher.answer(scenario, joint, int(actions[i, 0]))
+                labels[i, 1:] = answer[1:] if answer is not None else -1
+            else:
+                labels[i] = self._teacher.respond(scenario, joint, int(greedy[i, 0]), first)
+        return labels
 
     def _actions(self, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The greedy actions (games, agents), and the epsilon-greedy ones to play."""
+        """The greedy actions (games, agents), and the epsilon-greedy ones to play. Followers that
+        answer the leader (``train.follower_answers_leader``) answer the move the leader plays, and
+        explore on their own only with ``train.exploration: independent``."""
         obs = torch.from_numpy(observations)
         with torch.no_grad():
-            greedy = {m: self.module[m].forward_inference({Columns.OBS: obs})[Columns.ACTIONS].numpy()
-                      for m in set(self._modules_of_agent)}
-        actions = np.stack([greedy[m] for m in self._modules_of_agent], axis=1)
+            q = {m: self.module[m].q_network(obs).numpy() for m in set(self._modules_of_agent)}
+        greedy = team_q_values(q, self._modules_of_agent).argmax(-1)
         t = self.run.train
-        return actions, epsilon_greedy(actions, epsilon_at(self.num_env_steps_sampled_lifetime, t), self._rng,
-                                       joint=t.exploration == "joint")
+        epsilon = epsilon_at(self.num_env_steps_sampled_lifetime, t)
+        if not t.follower_answers_leader:
+            return greedy, epsilon_greedy(greedy, epsilon, self._rng, joint=t.exploration == "joint")
+        leader = epsilon_greedy(greedy[:, :1], epsilon, self._rng, joint=False)[:, 0]
+        actions = team_q_values(q, self._modules_of_agent, leader_moves=leader).argmax(-1)
+        actions[:, 0] = leader  # its own column holds its greedy move
+        if t.exploration == "independent":
+            actions[:, 1:] = epsilon_greedy(actions[:, 1:], epsilon, self._rng, joint=False)
+        return greedy, actions
 
     def sample(self, **kwargs) -> dict[str, Any]:
         run, rollout = self.run, self.rollout
@@ -150,7 +176,7 @@ class RolloutActor(EnvRunner, Checkpointable):
         for _ in range(run.train.steps_per_sample):
             greedy, actions = self._actions(rollout.observations)
             if run.train.dagger:
-                joints, labels = self._planner_labels(greedy)
+                joints = self._teacher_joints()
             else:
                 labels = np.full(actions.shape, -1, np.int8)
             for i in range(self._demo_games):  # demonstration games follow the teacher
@@ -158,6 +184,8 @@ class RolloutActor(EnvRunner, Checkpointable):
                     actions[i] = np.where(joints[i] >= 0, joints[i], actions[i])
                 elif self._plans[i]:
                     actions[i] = labels[i] = self._plans[i].pop(0)
+            if run.train.dagger:
+                labels = self._labels(joints, greedy, actions)
             chunks.append(rollout.step(actions, labels=labels))
             if not run.train.dagger:
                 for i in np.flatnonzero(rollout.game.steps[: self._demo_games] == 0):

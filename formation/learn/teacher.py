@@ -87,6 +87,30 @@ class Teacher:
         answer = next((j for j in self._order(scenario) if j[0] == leader_move and j in starts), None)
         return joint if answer is None else (joint[0], *answer[1:])
 
+    def answer(self, scenario: Scenario, joint: tuple[int, ...], leader_move: int) -> tuple[int, ...] | None:
+        """The joint action to learn when the leader makes ``leader_move`` (``train.follower_answers_leader``):
+        ``joint``, the state's label, where the leader makes its move; else, of the joint actions with
+        that leader move in the order, the first that starts a shortest path, or failing that the first
+        after which nobody collides and the formation holds; None where every one ends the episode.
+        On a first step ``joint`` may be the robust label, the one that keeps a path for the most
+        velocities of the obstacles; the answers to other leader moves are the clairvoyant ones."""
+        if leader_move == joint[0]:
+            return joint
+        found = None
+        if self.config.n_followers <= 2:
+            found = shortest_first_moves(scenario, config=self._capped_config(self._limit(scenario)))
+        starts = set(found[1]) if found is not None else set()
+        moves = [j for j in self._order(scenario) if j[0] == leader_move]
+        return next((j for j in moves if j in starts), None) or next((j for j in moves if self._survives(scenario, j)),
+                                                                     None)
+
+    def _survives(self, scenario: Scenario, joint: tuple[int, ...]) -> bool:
+        """Whether the team is still playing, or has won, after ``joint``."""
+        probe = self._probe
+        probe.load([scenario])
+        probe.step(np.array([joint]))
+        return bool(probe.success[0] or not probe.done[0])
+
     def _order(self, scenario: Scenario) -> list[tuple[int, ...]]:
         order = self._orders[scenario.leader[1]]
         if self.tolerant_formation:  # first the joint actions after which one agent's slip cannot break the formation
