@@ -59,6 +59,7 @@ class Teacher:
         self._probe = BatchedGame(config, batch_size=1)  # plays one joint action from a scenario
         self._capped: dict[int, GameConfig] = {}
         self._robust_labels: dict[tuple, tuple[int, ...] | None] = {}
+        self._found: dict[Scenario, set[tuple[int, ...]] | None] = {}  # _starts, oldest first
         destination, agents = config.destination[1], 1 + config.n_followers
         # "toward": the team heads for the destination's column first (below the obstacles), then forward
         self._orders = [lockstep_order(agents, 2 if col < destination else 1, order == "toward" and col != destination)
@@ -82,8 +83,7 @@ class Teacher:
         if leader_move == joint[0] or self.order not in SHORTEST_PATH_ORDERS or self.config.n_followers > 2 \
                 or (first_step and self.robust_first_step):
             return joint
-        found = shortest_first_moves(scenario, config=self._capped_config(self._limit(scenario)))
-        starts = set(found[1]) if found is not None else set()
+        starts = self._starts(scenario) or set()
         answer = next((j for j in self._order(scenario) if j[0] == leader_move and j in starts), None)
         return joint if answer is None else (joint[0], *answer[1:])
 
@@ -96,13 +96,20 @@ class Teacher:
         velocities of the obstacles; the answers to other leader moves are the clairvoyant ones."""
         if leader_move == joint[0]:
             return joint
-        found = None
-        if self.config.n_followers <= 2:
-            found = shortest_first_moves(scenario, config=self._capped_config(self._limit(scenario)))
-        starts = set(found[1]) if found is not None else set()
+        starts = (self._starts(scenario) if self.config.n_followers <= 2 else None) or set()
         moves = [j for j in self._order(scenario) if j[0] == leader_move]
         return next((j for j in moves if j in starts), None) or next((j for j in moves if self._survives(scenario, j)),
                                                                      None)
+
+    def _starts(self, scenario: Scenario) -> set[tuple[int, ...]] | None:
+        """The joint actions that start a shortest path within the slack (None: no path), from one
+        search; the last few are kept, since a state's label and its answers need the same."""
+        if scenario not in self._found:
+            if len(self._found) >= 256:
+                self._found.pop(next(iter(self._found)))
+            found = shortest_first_moves(scenario, config=self._capped_config(self._limit(scenario)))
+            self._found[scenario] = set(found[1]) if found is not None else None
+        return self._found[scenario]
 
     def _survives(self, scenario: Scenario, joint: tuple[int, ...]) -> bool:
         """Whether the team is still playing, or has won, after ``joint``."""
@@ -144,10 +151,9 @@ class Teacher:
             lockstep = [joint for joint in order if len(set(joint)) == 1 and joint in counts]
             return max(lockstep or order, key=lambda joint: counts.get(joint, 0.0))  # equal counts: by the order
         if self.order in SHORTEST_PATH_ORDERS and self.config.n_followers <= 2:  # one search finds every first move
-            found = shortest_first_moves(scenario, config=self._capped_config(self._limit(scenario)))
-            if found is None:
+            starts = self._starts(scenario)
+            if starts is None:
                 return None
-            starts = set(found[1])
             return next(joint for joint in order if joint in starts)
         path = self._path(scenario)
         if path is None:
