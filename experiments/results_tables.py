@@ -4,7 +4,7 @@
 
 Each report is `formation evaluate <policy> --episodes 1000 --seed 2000000 --json docs/results/<name>.json`;
 each report's training hours are in docs/results/training_hours.json, as experiments/training_time.py
-measured them from the run folder's metrics.jsonl."""
+measured them from the run folder's metrics.jsonl (with the machine, where it was not this one)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ def pct(x: float) -> str:
     return f"{100 * x:.1f}%"
 
 
-def row(name: str, r: dict, hours: float | None) -> str:
+def row(name: str, r: dict, hours: float | dict | None) -> str:
     low, high = r["success_ci95"]
     p = r["planner"]
     setting = r["setting"]
@@ -28,7 +28,10 @@ def row(name: str, r: dict, hours: float | None) -> str:
     ours = r["return_mean"]
     follower = ours.get("follower", ours.get("follower_1"))
     ratio = p["return_ratio"]
-    time = f"{hours:.2f} h" if hours is not None else "n/a"
+    # a number: hours on this 2-core machine; {"hours": h, "where": machine}: hours on another
+    where = f" ({hours['where']})" if isinstance(hours, dict) else ""
+    hours = hours["hours"] if isinstance(hours, dict) else hours
+    time = f"{hours:.2f} h{where}" if hours is not None else "n/a"
     cells = [name, f"{r['env_steps']:,}", time,
              f"**{pct(r['success'])}** ({pct(low)}-{pct(high)})",
              pct(r["leader_collision"]), pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]),
