@@ -13,7 +13,8 @@ The first joint move of an episode that starts no shortest path is blamed on
 Prints, per outcome, how many episodes had their first departure blamed on whom; whether a
 successful path was still left after that departure ("yes", a longer one), none was ("no") or the
 move itself ended the episode ("ends there"); and whether the leader's move
-there was the default teacher's label ("label") or another move ("other").
+there was the default teacher's label ("label", on a first step the robust one) or another move
+("other").
 """
 
 from __future__ import annotations
@@ -41,7 +42,8 @@ def main() -> None:
     torch.set_num_threads(1)
     policy = load(args.policy)
     config = policy.game
-    teacher = Teacher(config, TrainSettings().planner_slack, TrainSettings().label_order)  # the default labels
+    defaults = TrainSettings()
+    teacher = Teacher(config, defaults.planner_slack, defaults.label_order, defaults.robust_first_step)
     first: dict[int, tuple[str, str, str]] = {}  # episode -> (who, a path left after?, leader's move)
     moves = collections.Counter()
 
@@ -69,7 +71,7 @@ def main() -> None:
             alive = not (probe.done[0] and not probe.success[0])
             left = ("ends there" if not alive else "yes" if probe.success[0] or
                     shortest_path(probe.scenario(0), config=config) is not None else "no")
-            label = teacher.label(scenario)
+            label = teacher.label(scenario, first_step=game.steps[i] == 0)
             first[i] = (who, left, "label" if label is not None and label[0] == joint[0] else "other")
 
     played = play_greedy(config, policy.act_batch, args.episodes, args.seed, watch=watch)
