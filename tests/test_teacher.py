@@ -244,7 +244,8 @@ def test_rollout_actor_learns_from_response_labels_but_demonstrations_play_the_t
     from formation.learn.config import RunConfig
     from formation.learn.rollout_actor import RolloutActor
 
-    run = RunConfig.load("configs/smoke.yaml", {"train.follower_labels": follower_labels})
+    run = RunConfig.load("configs/smoke.yaml", {"train.follower_labels": follower_labels,
+                                                "train.follower_answers_leader": False})
     actor = RolloutActor(config=build_algorithm_config(run))
     game, teacher = actor.rollout.game, actor._teacher
     scenarios = [game.scenario(i) for i in range(game.batch_size)]

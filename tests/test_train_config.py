@@ -92,6 +92,7 @@ def test_paper_config_is_the_papers_table_2():
     # none of our recipe: no teacher, each agent explores on its own, one-step targets
     assert t.leader_window is None and not t.screen_cells  # the paper's networks see the whole screen in patches
     assert not t.obstacle_forecast  # and learn the obstacles' motion themselves
+    assert not t.follower_answers_leader  # and choose at once, each on its own
     assert (t.dagger, t.demonstrations, t.margin, t.exploration, t.n_step, t.prioritized) == (
         False, 0, 0, "independent", 1, False)
     assert paper.game.max_steps == 200 and paper.game.reward_reach == 50
@@ -114,6 +115,7 @@ def test_a_saved_run_from_before_a_key_existed_keeps_what_it_trained_with(tmp_pa
     assert RunConfig.load(path).train.leader_window == (12, 3, 10)  # a plain config takes today's default
     assert RunConfig.load(path).train.screen_cells is True
     assert RunConfig.load(path).train.obstacle_forecast is True
+    assert RunConfig.load(path).train.follower_answers_leader is True
     saved["train"]["leader_window"] = [4, 1, 2]
     path.write_text(yaml.safe_dump(saved))
     assert RunConfig.load_saved(path).train.leader_window == (4, 1, 2)

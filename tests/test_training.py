@@ -123,7 +123,8 @@ def test_the_stock_rllib_path_trains_both_policies_on_the_papers_reward(cluster)
     import torch
 
     run, algo = build(1, path="stock", shaping=0.0, demonstrations=0.0, margin=0.0, dagger=False, prioritized=False,
-                      exploration="independent", replay_ratio=0.25, learning_starts=200)
+                      follower_answers_leader=False, exploration="independent", replay_ratio=0.25,
+                      learning_starts=200)
     try:
         before = {m: [p.detach().clone() for p in module.parameters()] for m, module in algo.local_modules().items()}
         assert set(before) == {"leader", "follower"}

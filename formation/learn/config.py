@@ -76,7 +76,7 @@ class TrainSettings:
     # the followers' networks answer the leader: one Q-value per (leader's move, own move), and a follower
     # makes its move in the row of the move the leader makes (formation.learn.qnet.team_q_values); DAgger
     # labels it with the teacher's answer to that move (formation.learn.teacher.Teacher.answer)
-    follower_answers_leader: bool = False
+    follower_answers_leader: bool = True
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True
     hidden: int = 256
