@@ -36,6 +36,15 @@ def steps_after(config, scenario, joint):
     return None if path is None else len(path)
 
 
+def labelled_states(teacher, n):
+    """(scenario, the teacher's label, the shortest path's length after it) for the first ``n``
+    seeds' starts of SMALL that have a label."""
+    for scenario in scenarios(SMALL, range(n)):
+        joint = teacher.label(scenario)
+        if joint is not None:
+            yield scenario, joint, steps_after(SMALL, scenario, joint)
+
+
 def order_at(scenario):
     """The teacher's lockstep order for a state of SMALL (sideways towards the destination first)."""
     return lockstep_order(2, 2 if scenario.leader[1] < SMALL.destination[1] else 1)
@@ -211,12 +220,8 @@ def test_following_safe_labels_succeeds():
 def test_response_labels_answer_the_leaders_own_move_with_a_shortest_path_when_one_exists():
     teacher = Teacher(SMALL, slack=200, order="lockstep")
     answered = kept = 0
-    for scenario in scenarios(SMALL, range(60)):
-        joint = teacher.label(scenario)
-        if joint is None:
-            continue
+    for scenario, joint, best in labelled_states(teacher, 60):
         assert teacher.respond(scenario, joint, joint[0]) == joint  # the teacher's own leader move: its label
-        best = steps_after(SMALL, scenario, joint)
         for leader_move in set(range(4)) - {joint[0]}:
             response = teacher.respond(scenario, joint, leader_move)
             assert response[0] == joint[0]  # the leader keeps the teacher's label
@@ -268,12 +273,8 @@ def test_rollout_actor_learns_from_response_labels_but_demonstrations_play_the_t
 def test_answers_to_the_leaders_move_start_a_shortest_path_else_survive_the_step():
     teacher = Teacher(SMALL, slack=200, order="lockstep")
     shortest_answers = surviving_answers = none = 0
-    for scenario in scenarios(SMALL, range(40)):
-        joint = teacher.label(scenario)
-        if joint is None:
-            continue
+    for scenario, joint, best in labelled_states(teacher, 40):
         assert teacher.answer(scenario, joint, joint[0]) == joint  # the label's own leader move: the label
-        best = steps_after(SMALL, scenario, joint)
         for leader_move in set(range(4)) - {joint[0]}:
             answer = teacher.answer(scenario, joint, leader_move)
             with_leader = [j for j in order_at(scenario) if j[0] == leader_move]
