@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from formation.config import ConfigError, GameConfig
-from formation.learn.qnet import DuelingQNetwork, team_q_values
+from formation.learn.qnet import N_ACTIONS, DuelingQNetwork, team_q_values
 
 FORMAT_VERSION = 1
 CARD = "policy.json"
@@ -145,7 +145,7 @@ class Policy:
         for module, agents in by_module.items():
             x = np.stack([np.asarray(observations[a]) for a in agents])
             q = {module: self.q_values(x, module)}
-            if q[module].shape[-1] != 4:  # it answers the leader's greedy move, from its own screen
+            if q[module].shape[-1] != N_ACTIONS:  # it answers the leader's greedy move, from its own screen
                 q[leader] = self.q_values(x, leader)
             for agent, action in zip(agents, team_q_values(q, [leader, module])[:, 1].argmax(-1).tolist()):
                 actions[agent] = int(action)

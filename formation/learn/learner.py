@@ -42,8 +42,8 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
         actions = [sample["actions"][:, a] for a in agents]
         labels = [sample["labels"][:, a] for a in agents]
         if module in answering:
-            actions = [4 * leader + a for a in actions]
-            labels = [np.where(b >= 0, 4 * leader + b, -1) for b in labels]
+            actions = [N_ACTIONS * leader + a for a in actions]
+            labels = [np.where(b >= 0, N_ACTIONS * leader + b, -1) for b in labels]
         out[module] = {Columns.OBS: shared["obs"], Columns.NEXT_OBS: shared["next_obs"],
                        Columns.ACTIONS: np.concatenate(actions),
                        RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
