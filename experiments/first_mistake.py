@@ -3,6 +3,7 @@ joint move with every joint move that starts a shortest path (the planner's
 ``shortest_first_moves``), not with one label.
 
     .venv/bin/python experiments/first_mistake.py policies/setting1 [--episodes 300] [--seed 2000000]
+        [--show "formation break"]
 
 The first joint move of an episode that starts no shortest path is blamed on
 - "follower" when the leader's move starts one with some other follower move (the follower did
@@ -14,7 +15,8 @@ Prints, per outcome, how many episodes had their first departure blamed on whom;
 successful path was still left after that departure ("yes", a longer one), none was ("no") or the
 move itself ended the episode ("ends there"); and whether the leader's move
 there was the default teacher's label ("label", on a first step the robust one) or another move
-("other").
+("other"). ``--show OUTCOME`` also lists each episode that ended so: the step of its first
+departure, the joint move made there and the teacher's label, and the step it ended at.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ def main() -> None:
     parser.add_argument("policy", type=Path, help="an exported policy folder or a run folder")
     parser.add_argument("--episodes", type=int, default=300)
     parser.add_argument("--seed", type=int, default=2_000_000)
+    parser.add_argument("--show", help="an outcome whose episodes to list, e.g. 'formation break'")
     args = parser.parse_args()
     torch.set_num_threads(1)
     policy = load(args.policy)
@@ -45,6 +48,7 @@ def main() -> None:
     defaults = TrainSettings()
     teacher = Teacher(config, defaults.planner_slack, defaults.label_order, defaults.robust_first_step)
     first: dict[int, tuple[str, str, str]] = {}  # episode -> (who, a path left after?, leader's move)
+    where: dict[int, tuple[int, tuple, tuple | None]] = {}  # episode -> (step, joint move, label) of that move
     moves = collections.Counter()
 
     def watch(game, actions: np.ndarray, live: np.ndarray) -> None:
@@ -73,6 +77,7 @@ def main() -> None:
                     shortest_path(probe.scenario(0), config=config) is not None else "no")
             label = teacher.label(scenario, first_step=game.steps[i] == 0)
             first[i] = (who, left, "label" if label is not None and label[0] == joint[0] else "other")
+            where[i] = (int(game.steps[i]), joint, label)
 
     played = play_greedy(config, policy.act_batch, args.episodes, args.seed, watch=watch)
     outcome = {i: ("success" if played["success"][i] else "leader collision" if played["leader_collided"][i]
@@ -86,6 +91,11 @@ def main() -> None:
     print(f"{'outcome':<20} {'first off':<10} {'path left after':<16} {'leader moved':<13} {'episodes':>8}")
     for (end, who, left, leader), n in sorted(table.items()):
         print(f"{end:<20} {who:<10} {left:<16} {leader:<13} {n:>8}")
+    for i, end in outcome.items():
+        if end == args.show:
+            step, joint, label = where.get(i, (None, None, None))
+            print(f"episode {i}: first off at step {step}, joint move {joint}, label {label}; "
+                  f"ended at step {played['steps'][i]}")
 
 
 if __name__ == "__main__":
