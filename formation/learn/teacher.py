@@ -83,8 +83,7 @@ class Teacher:
         if leader_move == joint[0] or self.order not in SHORTEST_PATH_ORDERS or self.config.n_followers > 2 \
                 or (first_step and self.robust_first_step):
             return joint
-        starts = self._starts(scenario) or set()
-        answer = next((j for j in self._order(scenario) if j[0] == leader_move and j in starts), None)
+        answer = self._shortest_with(scenario, leader_move)
         return joint if answer is None else (joint[0], *answer[1:])
 
     def answer(self, scenario: Scenario, joint: tuple[int, ...], leader_move: int) -> tuple[int, ...] | None:
@@ -96,10 +95,14 @@ class Teacher:
         velocities of the obstacles; the answers to other leader moves are the clairvoyant ones."""
         if leader_move == joint[0]:
             return joint
-        starts = (self._starts(scenario) if self.config.n_followers <= 2 else None) or set()
-        moves = [j for j in self._order(scenario) if j[0] == leader_move]
-        return next((j for j in moves if j in starts), None) or next((j for j in moves if self._survives(scenario, j)),
-                                                                     None)
+        shortest = self._shortest_with(scenario, leader_move) if self.config.n_followers <= 2 else None
+        surviving = (j for j in self._order(scenario) if j[0] == leader_move and self._survives(scenario, j))
+        return shortest or next(surviving, None)
+
+    def _shortest_with(self, scenario: Scenario, leader_move: int) -> tuple[int, ...] | None:
+        """The first joint action in the order with ``leader_move`` that starts a shortest path; None if none does."""
+        starts = self._starts(scenario) or set()
+        return next((j for j in self._order(scenario) if j[0] == leader_move and j in starts), None)
 
     def _starts(self, scenario: Scenario) -> set[tuple[int, ...]] | None:
         """The joint actions that start a shortest path within the slack (None: no path), from one
