@@ -142,13 +142,15 @@ class RolloutActor(EnvRunner, Checkpointable):
         if t.follower_labels != "response" and not t.follower_answers_leader:
             return joints
         labels = joints.copy()
-        for i in np.flatnonzero(joints[:, 0] >= 0):
+        leader = actions[:, 0] if t.follower_answers_leader else greedy[:, 0]
+        # where the leader makes the teacher's move, the label stands as it is
+        for i in np.flatnonzero((joints[:, 0] >= 0) & (leader != joints[:, 0])):
             scenario, first, joint = game.scenario(i), game.steps[i] == 0, tuple(int(a) for a in joints[i])
             if t.follower_answers_leader:
-                answer = self._teacher.answer(scenario, joint, int(actions[i, 0]))
+                answer = self._teacher.answer(scenario, joint, int(leader[i]))
                 labels[i, 1:] = answer[1:] if answer is not None else -1
             else:
-                labels[i] = self._teacher.respond(scenario, joint, int(greedy[i, 0]), first)
+                labels[i] = self._teacher.respond(scenario, joint, int(leader[i]), first)
         return labels
 
     def _actions(self, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
