@@ -29,9 +29,11 @@ from formation.pictures import write_episodes_gif
 from formation.storage import RemoteRun, is_uri
 
 CHECKPOINT = "checkpoint"
-# what --set may change when resuming: how long to train, and a fine-tuning phase (a lower lr, and a
-# replay refilled to learning_starts records before the first update, as it starts empty)
+# what --set may change when resuming: how long to train, a fine-tuning phase (a lower lr, and a
+# replay refilled to learning_starts records before the first update, as it starts empty), and where it
+# runs (a run started on a cluster or a GPU machine goes on on a laptop, and the other way round)
 RESUMABLE = {"train.total_env_steps", "train.lr", "train.learning_starts"}
+RESUMABLE_SECTIONS = ("resources",)
 FAULT_COUNTERS = ("rollout_actor_restarts", "replay_restarts", "updates_skipped")
 # each module's learner results in metrics.jsonl, as learner/<module>/<name>
 LEARNER_METRICS = {"q_mean": "q_mean", "td_abs_mean": "td_abs_mean", "total_loss": "total_loss",
@@ -168,10 +170,10 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         if not checkpoint_path(out_dir).is_dir() or not saved.is_file():
             raise ConfigError(f"--resume: no checkpoint to resume in {str(out_dir)!r} "
                               f"(expected {str(checkpoint_path(out_dir))!r}); train without --resume first")
-        changed = sorted(set(overrides or {}) - RESUMABLE)
+        changed = sorted(k for k in overrides or {} if k not in RESUMABLE and k.split(".")[0] not in RESUMABLE_SECTIONS)
         if changed:
-            raise ConfigError(f"--resume: --set {changed[0]} would change the run being resumed; "
-                              f"allowed: {', '.join(sorted(RESUMABLE))}")
+            raise ConfigError(f"--resume: --set {changed[0]} would change the run being resumed; allowed: "
+                              f"{', '.join(sorted(RESUMABLE))}, {', '.join(s + '.*' for s in RESUMABLE_SECTIONS)}")
         run = RunConfig.load_saved(saved, overrides)
     else:
         if config_path is None:

@@ -5,6 +5,7 @@ One small local Ray cluster (2 CPUs) serves the whole module."""
 import json
 
 import pytest
+import yaml
 
 ray = pytest.importorskip("ray")
 
@@ -78,9 +79,13 @@ def test_train_writes_a_checkpoint_and_resume_continues(cluster, tmp_path):
     assert first_run_steps >= 3000
     assert rows[-1]["learner/leader/lr"] == pytest.approx(1e-3)
     skipped_before = rows[-1]["faults/updates_skipped"]
-    # a fine-tuning phase: a lower lr, and learning once the emptied replay holds 1200 records (smoke: 500)
+    # a fine-tuning phase: a lower lr, and learning once the emptied replay holds 1200 records (smoke: 500),
+    # on fewer rollout actors (a run from a cluster going on on a laptop)
     train(None, str(out), resume=True, quiet=True, overrides={
-        "train.total_env_steps": first_run_steps + 2000, "train.lr": 2e-4, "train.learning_starts": 1200})
+        "train.total_env_steps": first_run_steps + 2000, "train.lr": 2e-4, "train.learning_starts": 1200,
+        "resources.num_rollout_actors": 1, "resources.games_per_actor": 12})
+    saved = yaml.safe_load((out / "config.yaml").read_text())
+    assert saved["resources"]["num_rollout_actors"] == 1 and saved["resources"]["games_per_actor"] == 12
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     resumed = rows[len(rows) - 1]
     later = [r for r in rows if r["env_steps"] > first_run_steps]
@@ -103,7 +108,8 @@ def test_resume_without_checkpoint_and_bad_config_are_one_line_errors(tmp_path):
     (run / "checkpoint").mkdir(parents=True)
     (run / "config.yaml").write_text("game: {}\n")
     with pytest.raises(ConfigError, match=r"^--resume: --set train\.gamma would change the run being resumed; "
-                                          r"allowed: train\.learning_starts, train\.lr, train\.total_env_steps$"):
+                                          r"allowed: train\.learning_starts, train\.lr, train\.total_env_steps, "
+                                          r"resources\.\*$"):
         train(None, str(run), resume=True, overrides={"train.gamma": 0.9, "train.lr": 1e-4})
     with pytest.raises(ConfigError, match=r"^train\.gama: unknown key"):
         train(SMOKE, str(tmp_path / "bad"), overrides={"train.gama": 0.5})
