@@ -307,7 +307,9 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
             remote_worker_ids=runner_ids, local_env_runner=False)
         agents = module_of_agent(self.run)
         answering = [m for m in set(agents) if answers_leader(self.run, m)]
-        self.learner_group.foreach_learner(lambda learner: learner.set_replays(replays, agents, answering))
+        mirror, seed = self.run.train.mirror, self.run.train.seed
+        self.learner_group.foreach_learner(
+            lambda learner: learner.set_replays(replays, agents, answering, mirror, seed))
 
     def restore_env_runners(self, env_runner_group):
         restored = super().restore_env_runners(env_runner_group)

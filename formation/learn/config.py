@@ -21,6 +21,7 @@ from typing import Any
 import yaml
 
 from formation.config import ConfigError, GameConfig
+from formation.game.mirror import mirror_symmetric
 from formation.learn.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
@@ -96,6 +97,10 @@ class TrainSettings:
     # planes of a recurrent convolution down the rows of what the Q-networks read, from the destination's side
     # (formation.learn.qnet.RowScan); 0: none. Needs grid observations or screen_cells
     row_scan: int = 0
+    # the learner sees a random half of every batch in a mirror (columns reversed, left and right moves
+    # swapped; formation.game.mirror): twice the states from the same play. Needs a board that is its own
+    # mirror image (an odd width, one follower: settings 1-2)
+    mirror: bool = False
     grad_clip: float = 10.0
     total_env_steps: int = 300_000
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
@@ -123,7 +128,7 @@ class TrainSettings:
         _integer(self, "row_scan", 0)
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
-                     "tolerant_formation", "obstacle_forecast", "follower_answers_leader"):
+                     "tolerant_formation", "obstacle_forecast", "follower_answers_leader", "mirror"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:
@@ -217,6 +222,8 @@ class RunConfig:
         if self.train.row_scan and patches:
             raise ConfigError(f"train.row_scan: {self.train.row_scan} needs the screen read per cell; "
                               "allowed: 0, or any with train.screen_cells: true or game.obs_type: grid")
+        if self.train.mirror and (needs := mirror_symmetric(self.game)) is not None:
+            raise ConfigError(f"train.mirror: true needs {needs}; allowed: false, or true on settings 1-2")
         if self.train.obstacle_forecast:
             if patches:
                 raise ConfigError("train.obstacle_forecast: true needs the screen read per cell; allowed: false, "
@@ -284,7 +291,7 @@ class RunConfig:
 # keys added to the config after runs were saved without them, with the value those runs trained with
 LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("train", "screen_cells"): False,
                                           ("train", "obstacle_forecast"): False, ("train", "row_scan"): 0,
-                                          ("train", "follower_answers_leader"): False}
+                                          ("train", "follower_answers_leader"): False, ("train", "mirror"): False}
 
 
 def _read_yaml(path: str | Path) -> dict[str, Any]:

@@ -20,6 +20,7 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
+from formation.game.mirror import mirror_steps
 from formation.learn.qnet import N_ACTIONS, double_q_target
 from formation.learn.qnet import large_margin as large_margin_loss
 
@@ -59,6 +60,7 @@ def _repeat(a: np.ndarray, copies: int) -> np.ndarray:
 class FormationLearner(DQNTorchLearner):
     _replays: list = []
     _threads: ThreadPoolExecutor | None = None
+    _mirror: np.random.Generator | None = None  # train.mirror: draws which steps of a batch are mirrored
     module_threads = True  # False: RLlib's serial update (the same arithmetic, one module after the other)
 
     def _uncompiled_update(self, batch: dict, **kwargs):
@@ -87,9 +89,12 @@ class FormationLearner(DQNTorchLearner):
         self.apply_gradients(self.postprocess_gradients(gradients))
         return {m: r[0] for m, r in results.items()}, {m: r[1] for m, r in results.items()}, {}
 
-    def set_replays(self, handles: list, module_of_agent: list[str], answering: list[str] = ()) -> bool:
-        """The replay shards to pull from, each agent's module, and the modules that answer the leader."""
+    def set_replays(self, handles: list, module_of_agent: list[str], answering: list[str] = (), mirror: bool = False,
+                    seed: int = 0) -> bool:
+        """The replay shards to pull from, each agent's module, the modules that answer the leader, and
+        whether to see a random half of every batch in a mirror (``train.mirror``)."""
         self._replays = list(handles)
+        self._mirror = np.random.default_rng([seed, 7]) if mirror else None
         self._module_of_agent = list(module_of_agent)
         self._answering = frozenset(answering)
         self._prefetch = None
@@ -98,6 +103,13 @@ class FormationLearner(DQNTorchLearner):
         self._stats: dict[str, dict[str, float]] = {}
         self.num_updates = getattr(self, "num_updates", 0)
         return True
+
+    def augment(self, sample: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """A replay sample as the modules learn from it: with ``train.mirror``, a random half of its steps
+        seen in a mirror."""
+        if self._mirror is None:
+            return sample
+        return mirror_steps(sample, self._mirror.random(len(sample["actions"])) < 0.5)
 
     def compute_loss_for_module(self, *, module_id: str, config: Any, batch: dict[str, Any],
                                 fwd_out: dict[str, Any]) -> torch.Tensor:
@@ -151,7 +163,7 @@ class FormationLearner(DQNTorchLearner):
                 break
             self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma, min_records)
             incarnation = seen[index] = sample.pop("incarnation")
-            batches = module_batches(sample, self._module_of_agent, self._answering)
+            batches = module_batches(self.augment(sample), self._module_of_agent, self._answering)
             n = len(sample["ids"])
             batch = MultiAgentBatch({m: SampleBatch(b) for m, b in batches.items()}, env_steps=n)
             # DQNLearner syncs target networks by this count: ours counts learner updates.
