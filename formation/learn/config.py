@@ -54,6 +54,11 @@ class TrainSettings:
     planner_slack: int = 6  # planner potential and teacher: paths longer than the lower bound + slack count as lost
     steps_per_sample: int = 8  # steps of all of an actor's games per push to the replay
     demonstrations: float = 0.5  # fraction of games played by the clairvoyant planner (the teacher)
+    # exploring starts: the fraction of training episodes that start with the team, in its start formation,
+    # moved to a random place on the board clear of the obstacles (formation.learn.rollout.exploring_start),
+    # so that it also learns states its own play seldom reaches (the top row beside the destination).
+    # Evaluation always starts from the spec's places
+    exploring_starts: float = 0.0
     margin: float = 5.0  # DQfD large-margin loss weight towards the teacher's actions (labels)
     margin_gap: float = 5.0  # DQfD's l(a_E, a): how far above every other action the teacher's Q must stand
     dagger: bool = True  # label every visited state with the teacher's joint action (DAgger)
@@ -115,6 +120,7 @@ class TrainSettings:
         _number(self, "epsilon_end", 0.0, 1.0)
         _number(self, "shaping", 0.0, math.inf)
         _number(self, "demonstrations", 0.0, 1.0)
+        _number(self, "exploring_starts", 0.0, 1.0)
         _number(self, "margin", 0.0, math.inf)
         _number(self, "margin_gap", 0.0, math.inf)
         _number(self, "grad_clip", 0.0, math.inf, low_open=True)

@@ -11,20 +11,41 @@ from __future__ import annotations
 import numpy as np
 
 from formation.config import GameConfig
-from formation.game import BatchedGame, Observer
+from formation.game import BatchedGame, Observer, Scenario
 from formation.learn.replay import Chunk
+
+
+def exploring_start(scenario: Scenario, config: GameConfig, rng: np.random.Generator, tries: int = 20) -> Scenario:
+    """``scenario`` with its team moved as one, every agent by the same rows and columns, to a place drawn
+    uniformly among those that keep every agent on the board, none within distance 1 of an obstacle
+    (spec rule 3) and not on the destination; the obstacles as they were. ``scenario`` itself if
+    ``tries`` draws find no such place."""
+    team = np.array([scenario.leader, *scenario.followers])
+    obstacles = np.array([(r, c) for r, c, _ in scenario.obstacles]).reshape(-1, 2)
+    low, high = -team.min(0), np.array([config.height, config.width]) - 1 - team.max(0)
+    for _ in range(tries):
+        moved = team + rng.integers(low, high + 1)
+        gaps = ((moved[:, None, :] - obstacles[None, :, :]) ** 2).sum(-1)
+        if (gaps > 1).all() and tuple(moved[0]) != config.destination:
+            cells = [tuple(int(v) for v in cell) for cell in moved]
+            return Scenario(leader=cells[0], followers=tuple(cells[1:]), obstacles=scenario.obstacles)
+    return scenario
 
 
 class GameRollout:
     def __init__(self, config: GameConfig, batch_size: int, seed: int | None = None, stream_offset: int = 0,
-                 potential=None, shaping: float = 0.0, gamma: float = 0.99):
+                 potential=None, shaping: float = 0.0, gamma: float = 0.99, exploring_starts: float = 0.0):
         """``potential`` (a ``formation.learn.shaping.Potential``), if given, adds the shaping term
         ``shaping * (gamma * Phi(s') - Phi(s))`` to every stored reward (never to the episode
-        statistics, which report the game's own reward)."""
+        statistics, which report the game's own reward). ``exploring_starts``: the fraction of episodes
+        that start from an ``exploring_start`` instead of the spec's places."""
         self.config = config
         self.potential, self.shaping, self.gamma = potential, shaping, gamma
         self.game = BatchedGame(config, batch_size=batch_size, seed=seed)
         self.game.reset()
+        self.exploring_starts = exploring_starts
+        self._start_rng = np.random.default_rng([seed or 0, stream_offset, 11])
+        self._explore_starts(np.ones(batch_size, bool))
         self.observer = Observer(self.game)
         self.batch_size = batch_size
         self.n_agents = self.game.n_agents
@@ -78,12 +99,22 @@ class GameRollout:
                                  truncated=np.zeros(n, bool), labels=np.full((n, self.n_agents), -1, np.int8))
                 records = concatenate([records, terminal])
             g.reset(mask=done)
+            self._explore_starts(done)
             if self.potential is not None:
                 self._phi[done] = self.potential(g, done)[done]
         self.observations = self.observer.observe(done)
         self._frames = self.observer.renderer.frames.copy()
         self._first = done
         return records
+
+    def _explore_starts(self, restarted: np.ndarray) -> None:
+        """Move the team of a random ``exploring_starts`` share of the ``restarted`` games (just reset)."""
+        if self.exploring_starts <= 0:
+            return
+        moved = restarted & (self._start_rng.random(len(restarted)) < self.exploring_starts)
+        if moved.any():
+            self.game.load([exploring_start(self.game.scenario(i), self.config, self._start_rng)
+                            for i in np.flatnonzero(moved)], mask=moved)
 
     def pop_episodes(self) -> list[dict]:
         out, self._episodes = self._episodes, []

@@ -91,7 +91,8 @@ class RolloutActor(EnvRunner, Checkpointable):
         potential = Potential(t.potential, run.game, t.planner_slack) if t.shaping > 0 and t.potential != "none" \
             else None
         self.rollout = GameRollout(run.game, games, seed=t.seed * 10_007 + index, stream_offset=index * games,
-                                   potential=potential, shaping=t.shaping, gamma=t.gamma)
+                                   potential=potential, shaping=t.shaping, gamma=t.gamma,
+                                   exploring_starts=t.exploring_starts)
         self._rng = np.random.default_rng([t.seed, index])  # exploration
         self._demo_games = int(round(run.train.demonstrations * games))
         self._plans: dict[int, list] = {}
