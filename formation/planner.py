@@ -35,8 +35,8 @@ Everything is vectorised over the states of a layer with numpy.
 
 from __future__ import annotations
 
-import functools
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -44,7 +44,8 @@ import numpy as np
 from formation.config import ConfigError, GameConfig
 from formation.game import COLLISION_OFFSETS, MOVES, BatchedGame, Scenario, parse_scenario
 
-__all__ = ["lower_bound", "shortest_first_moves", "shortest_path"]
+__all__ = ["lower_bound", "paths_exist", "shortest_first_moves", "shortest_first_moves_many", "shortest_path",
+           "shortest_path_counts"]
 
 N_ACTIONS = len(MOVES)
 # Largest state-code space deduplicated with a dense array (int32 entries); above it, np.unique.
@@ -79,15 +80,31 @@ def shortest_first_moves(scenario: dict | Scenario, *, config: GameConfig) -> tu
     """The length of a shortest successful path and every joint action that starts one (in index
     order), from one search; ``None`` if no path ends in success within ``max_steps``. At most
     two followers (the first moves of a layer's states are kept as 64-bit masks)."""
-    parsed = parse_scenario(scenario, config)
-    n_agents = 1 + len(parsed.followers)
+    return shortest_first_moves_many([scenario], config=config)[0]
+
+
+def shortest_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: GameConfig,
+                              max_steps: Sequence[int] | None = None
+                              ) -> list[tuple[int, list[tuple[int, ...]]] | None]:
+    """``shortest_first_moves`` of every scenario, the i-th with paths of at most ``max_steps[i]``
+    steps (default: ``config.max_steps`` for all), from searches over all the scenarios at once:
+    one per deadline they share, so numpy's cost per call is paid once for the lot."""
+    n_agents = 1 + config.n_followers
     if N_ACTIONS ** n_agents > 64:
         raise ConfigError(f"n_followers: {n_agents - 1} is not allowed here; allowed: 1 or 2")
-    found = _first_found(_search_first_moves, parsed, config)
-    if found is None:
-        return None
-    length, mask = found
-    return length, [_split(j, n_agents) for j in range(N_ACTIONS ** n_agents) if (mask >> j) & 1]
+    parsed = [parse_scenario(s, config) for s in scenarios]
+    found = _first_moves_many(parsed, config, max_steps, "mask")
+    return [None if f is None else (f[0], [_split(j, n_agents) for j in range(N_ACTIONS ** n_agents)
+                                           if (f[1] >> j) & 1])
+            for f in found]
+
+
+def paths_exist(scenarios: Sequence[dict | Scenario], *, config: GameConfig,
+                max_steps: Sequence[int] | None = None) -> np.ndarray:
+    """Whether each scenario has a successful path of at most ``max_steps[i]`` steps (default:
+    ``config.max_steps``): ``shortest_path(...) is not None`` for all of them, searched at once."""
+    parsed = [parse_scenario(s, config) for s in scenarios]
+    return np.array([f is not None for f in _first_moves_many(parsed, config, max_steps, "none")], bool)
 
 
 def shortest_path_counts(scenario: dict | Scenario, *,
@@ -97,12 +114,11 @@ def shortest_path_counts(scenario: dict | Scenario, *,
     ``max_steps``. Paths are sequences of joint actions (two that visit the same states by other
     moves count twice)."""
     parsed = parse_scenario(scenario, config)
-    n_agents = 1 + len(parsed.followers)
-    found = _first_found(functools.partial(_search_first_moves, count=True), parsed, config)
+    found = _first_moves_many([parsed], config, None, "count")[0]
     if found is None:
         return None
     length, counts = found
-    return length, {_split(j, n_agents): float(counts[j]) for j in np.flatnonzero(counts)}
+    return length, {_split(j, 1 + len(parsed.followers)): float(counts[j]) for j in np.flatnonzero(counts)}
 
 
 def _first_found(search, parsed: Scenario, config: GameConfig):
@@ -112,12 +128,39 @@ def _first_found(search, parsed: Scenario, config: GameConfig):
     if bound > config.max_steps:
         return None
     board = _Board(config)
-    future = _ObstacleFuture(config, parsed, board)
+    future = _ObstacleFuture(config, [parsed], board)
     for deadline in _deadlines(bound, config.max_steps):
-        found = search(board, future.zones(deadline), start, deadline)
+        found = search(board, future.zones(deadline)[0], start, deadline)
         if found is not None:
             return found
     return None
+
+
+def _first_moves_many(parsed: list[Scenario], config: GameConfig, max_steps: Sequence[int] | None, carry: str
+                      ) -> list[tuple[int, Any] | None]:
+    """``_search_first_moves`` of many scenarios with growing deadlines, as ``_first_found`` runs
+    ``_search``: at each rung of the deadline ladders, one search over every scenario still
+    unanswered whose ladder has that rung, each with its own deadline."""
+    limits = [config.max_steps] * len(parsed) if max_steps is None else [int(m) for m in max_steps]
+    if len(limits) != len(parsed):
+        raise ConfigError(f"max_steps: got {len(limits)} limits for {len(parsed)} scenarios")
+    bounds = [_steps_to_go(p.leader, config) for p in parsed]
+    ladders = [_deadlines(b, limit) if b <= limit else [] for b, limit in zip(bounds, limits)]
+    found: list[tuple[int, Any] | None] = [None] * len(parsed)
+    if not any(ladders):
+        return found
+    board = _Board(config)
+    zones = _ObstacleFuture(config, parsed, board).zones(max(ladder[-1] for ladder in ladders if ladder))
+    starts = np.array([[r * board.width + c for r, c in (p.leader, *p.followers)] for p in parsed], np.int32)
+    for rung in range(max(len(ladder) for ladder in ladders)):
+        members = [i for i, ladder in enumerate(ladders) if found[i] is None and rung < len(ladder)]
+        if not members:
+            break
+        deadlines = np.array([ladders[i][rung] for i in members])
+        answers = _search_first_moves(board, zones[members, : deadlines.max() + 1], starts[members], deadlines, carry)
+        for i, answer in zip(members, answers):
+            found[i] = answer
+    return found
 
 
 def _steps_to_go(leader: tuple[int, int], config: GameConfig) -> int:
@@ -159,39 +202,41 @@ class _Board:
 
 
 class _ObstacleFuture:
-    """The collision zones ``Z_1, Z_2, ...`` of one scenario, computed by the game as needed."""
+    """The collision zones ``Z_1, Z_2, ...`` of some scenarios, computed by the game as needed."""
 
-    def __init__(self, config: GameConfig, scenario: Scenario, board: _Board):
+    def __init__(self, config: GameConfig, scenarios: list[Scenario], board: _Board):
         self.board = board
-        self.game = BatchedGame(config, batch_size=1)
-        self.game.load([scenario])
-        self.obstacle_rows = self.game.obstacle_rows[0].copy()
-        # _zones[t, cell]: is the cell in Z_t (row 0 stands for the reset and stays empty).
-        self._zones = np.zeros((1, board.height * board.width), bool)
+        self.game = BatchedGame(config, batch_size=len(scenarios))
+        self.game.load(scenarios)
+        self.obstacle_rows = self.game.obstacle_rows.copy()  # (scenarios, obstacles)
+        # _zones[scenario, t, cell]: is the cell in Z_t (t = 0 stands for the reset and stays empty).
+        self._zones = np.zeros((len(scenarios), 1, board.height * board.width), bool)
 
     def zones(self, n_steps: int) -> np.ndarray:
-        """``(n_steps + 1, H * W)`` bool: the collision zone of every step up to ``n_steps``."""
-        known = len(self._zones) - 1
+        """``(scenarios, n_steps + 1, H * W)`` bool: the collision zone of every step up to ``n_steps``."""
+        known = self._zones.shape[1] - 1
         if n_steps > known:
-            self._zones = np.concatenate([self._zones, self._sweep(n_steps - known)])
-        return self._zones[: n_steps + 1]
+            self._zones = np.concatenate([self._zones, self._sweep(n_steps - known)], axis=1)
+        return self._zones[:, : n_steps + 1]
 
     def _sweep(self, n_steps: int) -> np.ndarray:
-        board = self.board
-        zones = np.zeros((n_steps, board.height * board.width), bool)
+        board, n_scenarios = self.board, len(self.obstacle_rows)
+        zones = np.zeros((n_scenarios, n_steps, board.height * board.width), bool)
         if self.game.n_obstacles == 0:
             return zones
-        # reached[t, s, o]: the column of obstacle o after sub-step s of step t.
-        reached = np.array([[cols[0].copy() for cols in self.game.sweep_obstacles()]
+        # reached[t, s, k, o]: the column of scenario k's obstacle o after sub-step s of step t (a
+        # scenario whose obstacles are slower than the batch's fastest reaches the same cell twice)
+        reached = np.array([[cols.copy() for cols in self.game.sweep_obstacles()]
                             for _ in range(n_steps)], dtype=np.int32)
         if reached.size == 0:
             return zones
-        rows = self.obstacle_rows[None, None, :, None] + COLLISION_OFFSETS[:, 0]
+        rows = self.obstacle_rows[None, None, :, :, None] + COLLISION_OFFSETS[:, 0]
         cols = reached[..., None] + COLLISION_OFFSETS[:, 1]
         rows = np.broadcast_to(rows, cols.shape)
-        step = np.broadcast_to(np.arange(n_steps)[:, None, None, None], cols.shape)
+        step = np.broadcast_to(np.arange(n_steps)[:, None, None, None, None], cols.shape)
+        scenario = np.broadcast_to(np.arange(n_scenarios)[None, None, :, None, None], cols.shape)
         on_board = (rows >= 0) & (rows < board.height) & (cols >= 0) & (cols < board.width)
-        zones[step[on_board], rows[on_board] * board.width + cols[on_board]] = True
+        zones[scenario[on_board], step[on_board], rows[on_board] * board.width + cols[on_board]] = True
         return zones
 
 
@@ -217,66 +262,84 @@ def _search(board: _Board, zones: np.ndarray, start: tuple, deadline: int) -> li
     return None
 
 
-def _search_first_moves(board: _Board, zones: np.ndarray, start: tuple, deadline: int,
-                        count: bool = False) -> tuple[int, Any] | None:
-    """``_search`` that keeps, for every state of a layer, the set of first joint actions of the
-    paths reaching it (a bit mask, merged over duplicates): ``(length, mask)`` of the first
-    layer with a success, the mask over all successes in it. ``count``: instead of the mask, how
-    many paths reach each state by each first joint action, ``(length, counts)`` with ``counts``
-    the shortest successful paths that start with each joint action (by joint action index)."""
-    layer = np.array([[r * board.width + c for r, c in start]], dtype=np.int32)
-    n_joint = N_ACTIONS ** len(start)
-    firsts = None  # per state of the layer: mask (or counts) of first joint actions (None at the start)
-    dedupe = _Deduplicator(board, len(start))
-    for t in range(deadline):
-        parent, joint, cells = _successors(board, layer, zones[t + 1], deadline - t - 1)
-        if firsts is not None:
+def _search_first_moves(board: _Board, zones: np.ndarray, starts: np.ndarray, deadlines: np.ndarray,
+                        carry: str = "mask") -> list[tuple[int, Any] | None]:
+    """``_search`` of several scenarios at once (``zones[k]``, ``starts[k]`` and ``deadlines[k]``:
+    scenario k's zones, its agents' cells and its deadline), each keeping, for every state of a
+    layer, what it needs of the paths reaching it, merged over duplicates: ``carry="mask"``, the
+    set of their first joint actions (a bit mask); ``"count"``, how many reach it by each first
+    joint action; ``"none"``, nothing. Per scenario ``(length, what)`` of the first layer with a
+    success, ``what`` over all the successes in it (the mask, the counts of shortest successful
+    paths by first joint action, or None), or None where no success comes within its deadline."""
+    n_scenarios, n_agents = starts.shape
+    n_joint, n_cells = N_ACTIONS ** n_agents, board.height * board.width
+    layer, owner = starts, np.arange(n_scenarios)  # the states of a layer and the scenario of each
+    firsts = None  # per state of the layer: what it carries (None at the start)
+    found: list[tuple[int, Any] | None] = [None] * n_scenarios
+    dedupe = _Deduplicator(board, n_agents, n_scenarios)
+    for t in range(int(deadlines.max())):
+        parent, joint, cells = _successors(board, layer, zones[:, t + 1].reshape(-1), deadlines[owner] - t - 1,
+                                           offset=owner * n_cells)
+        owner = owner[parent]
+        if carry == "none":
+            carried = None
+        elif firsts is not None:
             carried = firsts[parent]
-        elif count:
+        elif carry == "count":
             carried = np.zeros((len(joint), n_joint))
             carried[np.arange(len(joint)), joint] = 1.0
         else:
             carried = np.uint64(1) << joint.astype(np.uint64)
         success = cells[:, 0] == board.destination
         if success.any():
-            if count:
-                return t + 1, carried[success].sum(axis=0)
-            return t + 1, int(np.bitwise_or.reduce(carried[success]))
+            winners = owner[success]
+            if carry == "count":
+                totals = np.zeros((n_scenarios, n_joint))
+                np.add.at(totals, winners, carried[success])
+            elif carry == "mask":
+                totals = np.zeros(n_scenarios, np.uint64)
+                np.bitwise_or.at(totals, winners, carried[success])
+            for k in np.unique(winners):
+                found[k] = (t + 1, None if carry == "none" else totals[k] if carry == "count" else int(totals[k]))
+            playing = ~np.isin(owner, winners)
+            cells, owner = cells[playing], owner[playing]
+            carried = None if carried is None else carried[playing]
         if len(cells) == 0:
-            return None
-        codes = dedupe._codes(cells)
-        unique, inverse = np.unique(codes, return_inverse=True)
-        if count:
-            firsts = np.zeros((len(unique), n_joint))
+            break
+        keep, inverse = dedupe.groups(cells, owner)
+        if carry == "count":
+            firsts = np.zeros((len(keep), n_joint))
             np.add.at(firsts, inverse, carried)
-        else:
-            firsts = np.zeros(len(unique), np.uint64)
+        elif carry == "mask":
+            firsts = np.zeros(len(keep), np.uint64)
             np.bitwise_or.at(firsts, inverse, carried)
-        keep = np.zeros(len(unique), np.intp)
-        keep[inverse] = np.arange(len(cells))  # one copy of each state (any: they are equal)
-        layer = cells[keep]
-    return None
+        layer, owner = cells[keep], owner[keep]
+    return found
 
 
-def _successors(board: _Board, layer: np.ndarray, zone: np.ndarray, steps_left: int):
+def _successors(board: _Board, layer: np.ndarray, zone: np.ndarray, steps_left: int | np.ndarray,
+                offset: np.ndarray | None = None):
     """Every allowed move from ``layer``: the parent state's index, the joint action, and the
-    cells the agents land on, ``(moves, agents)``."""
+    cells the agents land on, ``(moves, agents)``. ``offset``: see ``_expand``."""
     n_agents = layer.shape[1]
-    landing, allowed = _expand(board, layer, zone, steps_left)
+    landing, allowed = _expand(board, layer, zone, steps_left, offset)
     parent, joint = np.divmod(np.flatnonzero(allowed), N_ACTIONS ** n_agents)
     actions = [(joint // N_ACTIONS ** (n_agents - 1 - i)) % N_ACTIONS for i in range(n_agents)]
     cells = np.stack([landing[parent, i, a] for i, a in enumerate(actions)], axis=1)
     return parent, joint, cells
 
 
-def _expand(board: _Board, layer: np.ndarray, zone: np.ndarray, steps_left: int):
+def _expand(board: _Board, layer: np.ndarray, zone: np.ndarray, steps_left: int | np.ndarray,
+            offset: np.ndarray | None = None):
     """Every joint action from every state of ``layer``: ``landing[state, agent, action]`` (the
     cell an agent lands on) and ``allowed[state, a_leader, a_follower, ...]`` (no collision,
-    formation kept, and the leader can still reach the destination in ``steps_left`` steps)."""
+    formation kept, and the leader can still reach the destination in ``steps_left`` steps, one
+    number or one per state). ``offset``: per state, where its scenario's zone starts in ``zone``
+    (several scenarios' zones laid end to end); None: one scenario."""
     n, n_agents = layer.shape
     landing = board.next_cell[layer]  # (n, agents, actions)
-    safe = ~zone[landing]
-    safe[:, 0] &= board.steps_to_go[landing[:, 0]] <= steps_left
+    safe = ~zone[landing if offset is None else landing + offset[:, None, None]]
+    safe[:, 0] &= board.steps_to_go[landing[:, 0]] <= np.reshape(steps_left, (-1, 1))
 
     def along(values: np.ndarray, agent: int) -> np.ndarray:
         """Put an agent's per-action values on its own axis of the joint-action grid."""
@@ -306,10 +369,11 @@ class _Deduplicator:
     """Keeps one of each joint state in a layer. The code of a state is its leader's cell and
     each follower's offset from the leader (bounded, since every stored state keeps formation)."""
 
-    def __init__(self, board: _Board, n_agents: int):
+    def __init__(self, board: _Board, n_agents: int, n_scenarios: int = 1):
         self.board = board
-        self.n_codes = board.height * board.width * board.n_offsets ** (n_agents - 1)
-        self.mark = np.empty(self.n_codes, np.int32) if self.n_codes <= DENSE_CODES_LIMIT else None
+        self.n_codes = board.height * board.width * board.n_offsets ** (n_agents - 1)  # per scenario
+        total = self.n_codes * n_scenarios
+        self.mark = np.empty(total, np.int32) if total <= DENSE_CODES_LIMIT else None
 
     def __call__(self, cells: np.ndarray) -> np.ndarray:
         """Indices of the first (dense: some) copy of each distinct state among ``cells``."""
@@ -319,6 +383,21 @@ class _Deduplicator:
         order = np.arange(len(codes), dtype=np.int32)
         self.mark[codes] = order
         return np.flatnonzero(self.mark[codes] == order)
+
+    def groups(self, cells: np.ndarray, owner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """States of several scenarios (``owner``: each one's scenario): the index of one copy of
+        each distinct (scenario, state), and for every state the position of its copy in that list."""
+        codes = owner * self.n_codes + self._codes(cells)
+        if self.mark is None:
+            _, keep, inverse = np.unique(codes, return_index=True, return_inverse=True)
+            return keep, inverse
+        order = np.arange(len(codes), dtype=np.int32)
+        self.mark[codes] = order
+        copy = self.mark[codes]  # the index of one copy of each state, the same for all its copies
+        keep = np.flatnonzero(copy == order)
+        slot = np.empty(len(codes), np.intp)
+        slot[keep] = np.arange(len(keep))
+        return keep, slot[copy]
 
     def _codes(self, cells: np.ndarray) -> np.ndarray:
         b = self.board

@@ -9,7 +9,14 @@ import pytest
 from formation.config import ConfigError, GameConfig
 from formation.env import parallel_env
 from formation.game import BatchedGame, Scenario, parse_scenario
-from formation.planner import lower_bound, shortest_first_moves, shortest_path, shortest_path_counts
+from formation.planner import (
+    lower_bound,
+    paths_exist,
+    shortest_first_moves,
+    shortest_first_moves_many,
+    shortest_path,
+    shortest_path_counts,
+)
 
 TINY = dict(height=7, width=7, n_obstacles=2, max_steps=14)  # small enough for the brute force
 
@@ -195,6 +202,51 @@ def test_path_counts_start_where_shortest_paths_start_and_add_up_over_the_next_s
                 assert rest[0] == length - 1 and sum(rest[1].values()) == count, (setting, seed, joint)
             checked += 1
     assert checked >= 15
+
+
+def played_states(setting: int, seeds, steps: int, **overrides) -> tuple[GameConfig, list[Scenario]]:
+    """States of random games of a setting after 0 to ``steps`` steps of a fixed mix of moves
+    (those still playing), so the batch holds many leader places and obstacle speeds."""
+    config = GameConfig.from_setting(setting, **overrides)
+    game, out = BatchedGame(config, 1), []
+    for seed in seeds:
+        game.reset(seed=seed)
+        for t in range(steps + 1):
+            if game.done[0]:
+                break
+            out.append(game.scenario(0))
+            game.step(np.array([[t % 4, (t * 3 + seed) % 4]]))
+    return config, out
+
+
+@pytest.mark.parametrize("setting", [1, 2])
+def test_many_scenarios_searched_at_once_get_each_their_own_answer(setting):
+    """One batched search of many states (each with its own obstacles, speeds and step limit, some
+    too short for any path) answers for each what a search of it alone answers."""
+    config, states = played_states(setting, range(6), 12)
+    limits = [lower_bound(s, config) + (i % 5) * 2 - 1 for i, s in enumerate(states)]
+    alone = [shortest_first_moves(s, config=config.replace(max_steps=limit)) for s, limit in zip(states, limits)]
+    assert shortest_first_moves_many(states, config=config, max_steps=limits) == alone
+    assert list(paths_exist(states, config=config, max_steps=limits)) == [a is not None for a in alone]
+    exist = [shortest_path(s, config=config.replace(max_steps=limit)) is not None for s, limit in zip(states, limits)]
+    assert exist == [a is not None for a in alone]
+    assert 0 < sum(exist) < len(states)  # both kinds of answer are checked
+    assert len({len(a[1]) for a in alone if a}) > 1
+
+
+def test_many_scenarios_of_a_tiny_board_match_the_brute_force():
+    for setting in (1, 2):
+        config = GameConfig.from_setting(setting, **{**TINY, "max_steps": 10})
+        batch = [scenario for _, scenario, _ in tiny_scenarios(setting, 12, max_steps=10)]
+        lengths = [found[0] if found else None for found in shortest_first_moves_many(batch, config=config)]
+        assert lengths == [brute_force_length(scenario, config, 10) for scenario in batch]
+        assert None in lengths and len(set(lengths)) > 2
+
+
+def test_a_batch_needs_one_limit_per_scenario():
+    config, states = played_states(1, range(2), 0)
+    with pytest.raises(ConfigError, match="max_steps: got 1 limits for 2 scenarios"):
+        shortest_first_moves_many(states, config=config, max_steps=[10])
 
 
 def test_needs_more_than_the_lower_bound():

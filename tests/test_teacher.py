@@ -336,3 +336,35 @@ def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_
         answer = teacher.answer(game.scenario(i), joint, int(played[i, 0]))
         assert labels[i, 0] == joint[0]  # the leader learns the teacher's move
         assert labels[i, 1] == (answer[1] if answer is not None else -1)
+
+
+def test_labels_of_a_batch_are_each_states_own_label_and_robust_first_steps_keep_the_most_paths():
+    """``Teacher.labels`` searches a batch of states at once (the rollout actors' way) and a first
+    step's hypotheses of the obstacles' velocities at once: on setting 1 (two obstacles' velocities
+    unknown, 16 hypotheses) each label is what a state labelled alone gets, and a first step's label
+    keeps a path open for as many hypotheses as any joint action (counted one hypothesis at a time)."""
+    config = GameConfig.from_setting(1)
+    starts = scenarios(config, range(4))
+    later = []
+    for scenario in starts:
+        game = BatchedGame(config, 1)
+        game.load([scenario])
+        for joint in (shortest_path(scenario, config=config) or [])[:6]:
+            game.step(np.array([joint]))
+            later.append(game.scenario(0))
+    batch, firsts = starts + later, [True] * len(starts) + [False] * len(later)
+    labels = Teacher(config, slack=6, order="lockstep", robust_first_step=True).labels(batch, firsts)
+    alone = Teacher(config, slack=6, order="lockstep", robust_first_step=True)
+    assert labels == [alone.label(s, first_step=f) for s, f in zip(batch, firsts)]
+    assert len(set(labels)) > 1 and None not in labels[:len(starts)]
+    for scenario, label in list(zip(starts, labels))[:2]:
+        near = alone._nearest_obstacles(scenario)
+        hypotheses = []
+        for velocities in itertools.product([1, -1, 2, -2], repeat=2):
+            obstacles = list(scenario.obstacles)
+            for i, v in zip(near, velocities):
+                obstacles[i] = (*obstacles[i][:2], v)
+            hypotheses.append(scenario.__class__(scenario.leader, scenario.followers, tuple(obstacles)))
+        kept = {joint: sum(alone._opens(h, joint) for h in hypotheses)
+                for joint in itertools.product(range(4), repeat=2)}
+        assert kept[label] == max(kept.values()) and min(kept.values()) < max(kept.values())

@@ -128,8 +128,8 @@ class RolloutActor(EnvRunner, Checkpointable):
     def _teacher_joints(self) -> np.ndarray:
         """DAgger: the teacher's joint action in every game's present state, -1 where it has none."""
         game, joints = self.rollout.game, np.full((self.rollout.batch_size, self.rollout.n_agents), -1, np.int8)
-        for i in range(self.rollout.batch_size):
-            joint = self._teacher.label(game.scenario(i), first_step=game.steps[i] == 0)
+        scenarios = [game.scenario(i) for i in range(self.rollout.batch_size)]
+        for i, joint in enumerate(self._teacher.labels(scenarios, list(game.steps == 0))):
             if joint is not None:
                 joints[i] = joint
         return joints

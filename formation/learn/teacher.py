@@ -16,7 +16,7 @@ import numpy as np
 
 from formation.config import GameConfig, formation_broken_by
 from formation.game import MOVES, BatchedGame, Scenario
-from formation.planner import lower_bound, shortest_first_moves, shortest_path, shortest_path_counts
+from formation.planner import lower_bound, paths_exist, shortest_first_moves_many, shortest_path, shortest_path_counts
 
 # robust first-step labels try every velocity of this many obstacles, those nearest the leader's row;
 # the others count as known (4 velocities each: trying all 3 of setting 1 costs 64 planner calls a label)
@@ -66,6 +66,7 @@ class Teacher:
                         for col in range(config.width)]
         speeds = [sign * speed for speed in config.obstacle_speeds for sign in (1, -1)]
         self._velocities = list(itertools.product(speeds, repeat=min(ROBUST_OBSTACLES, config.n_obstacles)))
+        self._hypotheses = BatchedGame(config, batch_size=len(self._velocities))  # one game per velocity
 
     @classmethod
     def of_run(cls, run) -> Teacher:
@@ -107,12 +108,19 @@ class Teacher:
     def _starts(self, scenario: Scenario) -> set[tuple[int, ...]] | None:
         """The joint actions that start a shortest path within the slack (None: no path), from one
         search; the last few are kept, since a state's label and its answers need the same."""
-        if scenario not in self._found:
+        self._find_starts([scenario])
+        return self._found[scenario]
+
+    def _find_starts(self, scenarios: list[Scenario]) -> None:
+        """``_starts`` of every scenario not yet kept, from one batched search."""
+        missing = list(dict.fromkeys(s for s in scenarios if s not in self._found))
+        if not missing:
+            return
+        found = shortest_first_moves_many(missing, config=self.config, max_steps=[self._limit(s) for s in missing])
+        for scenario, starts in zip(missing, found):
             if len(self._found) >= 256:
                 self._found.pop(next(iter(self._found)))
-            found = shortest_first_moves(scenario, config=self._capped_config(self._limit(scenario)))
-            self._found[scenario] = set(found[1]) if found is not None else None
-        return self._found[scenario]
+            self._found[scenario] = set(starts[1]) if starts is not None else None
 
     def _survives(self, scenario: Scenario, joint: tuple[int, ...]) -> bool:
         """Whether the team is still playing, or has won, after ``joint``."""
@@ -126,6 +134,13 @@ class Teacher:
         if self.tolerant_formation:  # first the joint actions after which one agent's slip cannot break the formation
             order = sorted(order, key=lambda joint: not self._tolerant(scenario, joint))
         return order
+
+    def labels(self, scenarios: list[Scenario], first_steps: list[bool]) -> list[tuple[int, ...] | None]:
+        """``label`` of every scenario (``first_steps[i]``: whether it is an episode's first step),
+        with the shortest-path searches of the lot run at once."""
+        if self.order in SHORTEST_PATH_ORDERS and self.config.n_followers <= 2:
+            self._find_starts([s for s, first in zip(scenarios, first_steps) if not (first and self.robust_first_step)])
+        return [self.label(s, first) for s, first in zip(scenarios, first_steps)]
 
     def label(self, scenario: Scenario, first_step: bool = False) -> tuple[int, ...] | None:
         """The joint action that labels ``scenario``; None where no path is left within the slack."""
@@ -205,15 +220,24 @@ class Teacher:
         return sorted(range(len(rows)), key=lambda i: (rows[i], i))[:ROBUST_OBSTACLES]
 
     def _robust(self, scenario: Scenario, near: list[int], order: list[tuple[int, ...]]) -> tuple[int, ...] | None:
+        """The first joint action in ``order`` that keeps a path open (``_opens``) for the most
+        velocities of the ``near`` obstacles, every hypothesis played and searched at once."""
         hypotheses = []
         for velocities in self._velocities:
             obstacles = list(scenario.obstacles)
             for i, v in zip(near, velocities):
                 obstacles[i] = (obstacles[i][0], obstacles[i][1], v)
             hypotheses.append(dataclasses.replace(scenario, obstacles=tuple(obstacles)))
+        games = self._hypotheses
         best, best_count = None, 0
         for joint in order:
-            count = sum(self._opens(hypothesis, joint) for hypothesis in hypotheses)
+            games.load(hypotheses)
+            games.step(np.tile(np.array(joint), (len(hypotheses), 1)))
+            playing = [games.scenario(i) for i in np.flatnonzero(~games.done)]
+            count = int(games.success.sum())
+            if playing:
+                limits = [self._limit(s) for s in playing]
+                count += int(paths_exist(playing, config=self.config, max_steps=limits).sum())
             if count > best_count:
                 best, best_count = joint, count
             if count == len(hypotheses):
