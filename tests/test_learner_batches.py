@@ -67,14 +67,15 @@ def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_
     assert large_margin(row, torch.tensor([1]), 5.0).item() == 2.0
 
 
-def test_threaded_module_updates_equal_rllibs_serial_update():
-    """On a CPU the learner updates its modules in parallel threads; the weights after an update must
-    be those of RLlib's serial update on the same batch."""
+def test_threaded_module_updates_equal_rllibs_serial_update(monkeypatch):
+    """On a CPU the learner updates its modules in parallel threads, the screens prepared once for both;
+    the weights after an update must be those of RLlib's serial update on the same batch."""
     import torch
     from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
     from formation.learn.algorithm import build_algorithm_config
     from formation.learn.config import RunConfig
+    from formation.learn.qnet import DuelingQNetwork
     from formation.learn.rollout_actor import module_of_agent, spaces_of
 
     run = RunConfig.load("configs/smoke.yaml")
@@ -87,8 +88,16 @@ def test_threaded_module_updates_equal_rllibs_serial_update():
               "actions": rng.integers(0, 4, (n, 2)), "returns": rng.normal(size=(n, 2)).astype(np.float32),
               "discounts": np.full(n, 0.9, np.float32), "labels": rng.integers(-1, 4, (n, 2)),
               "weights": np.ones(n, np.float32)}
-    weights = {}
+    weights, prepared = {}, {}
+    real_prepare = DuelingQNetwork.prepare
+
+    def counted_prepare(net, obs):
+        prepared[threaded] += 1
+        return real_prepare(net, obs)
+
+    monkeypatch.setattr(DuelingQNetwork, "prepare", counted_prepare)
     for threaded in (True, False):
+        prepared[threaded] = 0
         torch.manual_seed(0)
         learner = config.build_learner(spaces=spaces)
         learner.module_threads = threaded
@@ -106,3 +115,6 @@ def test_threaded_module_updates_equal_rllibs_serial_update():
             torch.testing.assert_close(value, weights[False][m][key])
         moved = [k for k, v in weights[True][m].items() if not torch.equal(v, before.module[m].state_dict()[k])]
         assert any("q_network" in k for k in moved), m  # the update did change the weights
+    # the layers without weights read the observations and the next ones once for both modules on the
+    # threaded path; RLlib's serial path runs each module's own: once per module and kind of observation
+    assert prepared == {True: 2, False: 4}

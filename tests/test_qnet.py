@@ -206,3 +206,23 @@ def test_a_follower_that_answers_the_leader_reads_the_row_of_the_leaders_move():
         np.testing.assert_array_equal(played[i, 1], follower[i, 4 * moves[i]: 4 * moves[i] + 4])
     net = DuelingQNetwork((9, 9, 8), high=1.0, answers_leader=True)
     assert net(torch.zeros(2, 9, 9, 8, dtype=torch.uint8)).shape == (2, 16)
+
+
+def test_networks_that_prepare_alike_share_one_preparation_and_keep_their_q_values(monkeypatch):
+    from formation.learn.qnet import q_values_of
+
+    torch.manual_seed(0)
+    shape = (84, 84, 12)
+    reading = {"cells": (25, 25), "forecast": True, "frame_channels": 3}
+    leader = DuelingQNetwork(shape, window=(12, 3, 10), **reading)
+    follower = DuelingQNetwork(shape, window=(12, 3, 10), answers_leader=True, **reading)
+    wider = DuelingQNetwork(shape, window=(12, 3, 12), **reading)
+    assert leader.prepare_key == follower.prepare_key != wider.prepare_key
+    obs = torch.randint(0, 256, (3, *shape), dtype=torch.uint8)
+    calls = []
+    real = DuelingQNetwork.prepare
+    monkeypatch.setattr(DuelingQNetwork, "prepare", lambda net, o: calls.append(net) or real(net, o))
+    q = q_values_of({"leader": leader, "follower": follower, "wider": wider}, obs)
+    assert calls == [leader, wider]  # the follower reads the leader's preparation
+    for name, net in (("leader", leader), ("follower", follower), ("wider", wider)):
+        torch.testing.assert_close(q[name], net(obs))

@@ -39,7 +39,7 @@ from formation.game.render import GRID_PLANES
 from formation.learn.config import RunConfig
 from formation.learn.learner import FormationLearner
 from formation.learn.module import DuelingQModule
-from formation.learn.qnet import team_q_values
+from formation.learn.qnet import q_values_of, team_q_values
 from formation.learn.replay_actor import ReplayActor
 from formation.learn.rollout_actor import RolloutActor, answers_leader, module_of_agent, spaces_of
 
@@ -234,7 +234,7 @@ class GreedyEvaluationMixin:
         def act(obs: np.ndarray) -> np.ndarray:
             x = torch.from_numpy(obs)
             with torch.no_grad():
-                q = {m: modules[m].q_network(x).numpy() for m in used}
+                q = {m: v.numpy() for m, v in q_values_of({m: modules[m].q_network for m in used}, x).items()}
             return team_q_values(q, names).argmax(-1)
 
         return play_greedy(run.game, act, episodes or run.eval.episodes, run.eval.seed if seed is None else seed,
@@ -339,10 +339,14 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
             # a replay of a few records
             c["updates_skipped"] = max(c["updates_skipped"], int(t.replay_ratio * c["env_steps"]) - c["updates"])
         # Sampling runs ahead of the learner by at most one call of updates plus one request per
-        # actor, counting the steps of requests still in flight, so the ratio holds at any load.
+        # actor, counting the steps of requests still in flight, so the ratio holds at any load;
+        # and by that much, so that every actor has its next request while the learner updates on
+        # the steps of its last (sampling and learning overlap instead of taking turns).
+        actors = max(1, self.env_runner_group.num_healthy_remote_workers())
         in_flight = self.env_runner_group.num_in_flight_async_reqs(tag="sample") * steps_per_request
         owed_ahead = t.replay_ratio * (c["env_steps"] + in_flight) - c["updates"] - c["updates_skipped"]
-        if not learning or owed_ahead < updates_per_call:
+        lead = updates_per_call + t.replay_ratio * steps_per_request * actors
+        if not learning or owed_ahead < lead:
             self.env_runner_group.foreach_env_runner_async("sample", tag="sample")
         for _, result in self.env_runner_group.fetch_ready_async_reqs(tags="sample", timeout_seconds=0.01):
             c["env_steps"] += result["env_steps"]

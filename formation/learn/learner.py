@@ -3,7 +3,8 @@
 It runs inside RLlib's LearnerGroup (a Ray actor, on a GPU when the config asks), so batches go
 replay actor -> learner without passing the driver. The next batch is requested before the
 current one is used (prefetch), so the learner rarely waits on the replay. On a CPU the modules
-(leader, follower) update in parallel threads, one core each.
+(leader, follower) update in parallel threads, one core each, after the layers without weights have
+read each batch's screens once for both.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from formation.game.mirror import mirror_steps
+from formation.learn.module import PREPARED_NEXT_OBS, PREPARED_OBS
 from formation.learn.qnet import N_ACTIONS, double_q_target
 from formation.learn.qnet import large_margin as large_margin_loss
 
@@ -75,6 +77,7 @@ class FormationLearner(DQNTorchLearner):
         self._compute_off_policyness(batch)
         for optim in self._optimizer_parameters:
             optim.zero_grad(set_to_none=True)
+        self._prepare_once(batch)
 
         def forward_backward(module_id: str):
             fwd_out = self.module[module_id].forward_train(batch[module_id])
@@ -88,6 +91,28 @@ class FormationLearner(DQNTorchLearner):
         gradients = {pid: p.grad for pid, p in self._params.items() if p.grad is not None}
         self.apply_gradients(self.postprocess_gradients(gradients))
         return {m: r[0] for m, r in results.items()}, {m: r[1] for m, r in results.items()}, {}
+
+    def _prepare_once(self, batch: dict) -> None:
+        """Run the layers without weights (``DuelingQNetwork.prepare``) once for each distinct tensor of
+        observations of the batch, not once per module and network: the leader's and the follower's
+        modules read the same screens. Each result goes into every module batch that holds that tensor,
+        as ``PREPARED_OBS`` / ``PREPARED_NEXT_OBS``, which ``DuelingQModule`` then reads."""
+        groups: dict[tuple, tuple[Any, torch.Tensor, list]] = {}
+        for module_id, columns in batch.items():
+            net = self.module[module_id].q_network
+            for column, prepared in ((Columns.OBS, PREPARED_OBS), (Columns.NEXT_OBS, PREPARED_NEXT_OBS)):
+                obs = columns[column]
+                key = (net.prepare_key, obs.data_ptr(), obs.dtype, tuple(obs.shape), obs.stride())
+                groups.setdefault(key, (net, obs, []))[2].append((module_id, prepared))
+
+        def prepare(group: tuple) -> torch.Tensor:
+            net, obs, _ = group
+            with torch.no_grad():
+                return net.prepare(obs)
+
+        for (_, _, users), x in zip(groups.values(), self._threads.map(prepare, groups.values())):
+            for module_id, prepared in users:
+                batch[module_id][prepared] = x
 
     def set_replays(self, handles: list, module_of_agent: list[str], answering: list[str] = (), mirror: bool = False,
                     seed: int = 0) -> bool:

@@ -23,6 +23,9 @@ from ray.rllib.utils.schedules.scheduler import Scheduler
 
 from formation.learn.qnet import DuelingQNetwork
 
+# a batch's observations as DuelingQNetwork.prepare makes them, when the learner prepared them already
+PREPARED_OBS, PREPARED_NEXT_OBS = "prepared_obs", "prepared_next_obs"
+
 
 class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI):
     def setup(self) -> None:
@@ -70,8 +73,14 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
         return {Columns.ACTIONS: torch.where(explore, random, greedy)}
 
     def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
-        obs, next_obs = batch[Columns.OBS], batch[Columns.NEXT_OBS]
-        q = self.q_network(obs)
+        """Q-values of the observations, and of the next ones by the network and its target. The layers
+        without weights run once per batch (``DuelingQNetwork.prepare``): on the next observations for
+        both networks, and not at all where the batch brings them prepared (``PREPARED_OBS``,
+        ``PREPARED_NEXT_OBS``: the learner prepares once for every module that prepares alike)."""
+        net = self.q_network
+        x = batch[PREPARED_OBS] if PREPARED_OBS in batch else net.prepare(batch[Columns.OBS])
+        q = net.q_values(x)
         with torch.no_grad():  # targets only: no backward pass through the next observations
-            q_next, q_target_next = self.q_network(next_obs), self._target_q_network(next_obs)
+            x_next = batch[PREPARED_NEXT_OBS] if PREPARED_NEXT_OBS in batch else net.prepare(batch[Columns.NEXT_OBS])
+            q_next, q_target_next = net.q_values(x_next), self._target_q_network.q_values(x_next)
         return {QF_PREDS: q, QF_NEXT_PREDS: q_next, QF_TARGET_NEXT_PREDS: q_target_next}

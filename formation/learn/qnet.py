@@ -302,6 +302,12 @@ class DuelingQNetwork(nn.Module):
         self.advantage = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, outputs))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.q_values(self.prepare(obs))
+
+    def prepare(self, obs: torch.Tensor) -> torch.Tensor:
+        """uint8 observations -> what the layers with weights read, ``(N, C, H, W)`` floats: the layers
+        without weights (cells, forecast, window). Two networks of the same ``prepare_key`` prepare
+        alike, so a learner prepares a batch once for the online and target networks of every module."""
         if self.cells is not None:
             obs = self.cells(obs)
         extra = self.forecast(obs) if self.forecast is not None else None
@@ -310,8 +316,36 @@ class DuelingQNetwork(nn.Module):
         else:
             x = obs.float() * self.scale
             x = x if extra is None else torch.cat([x, extra], dim=3)
-        x = x.permute(0, 3, 1, 2)
+        return x.permute(0, 3, 1, 2)
+
+    def q_values(self, x: torch.Tensor) -> torch.Tensor:
+        """Q-values from ``prepare``'s output."""
         if self.row_scan is not None:
             x = self.row_scan(x)
         x = self.encoder(x)
         return dueling(self.value(x), self.advantage(x))
+
+    @property
+    def prepare_key(self) -> tuple:
+        """What ``prepare`` depends on: equal keys, equal outputs for the same observations."""
+        cells, forecast, window = self.cells, self.forecast, self.window
+        return (self.obs_shape, float(self.scale),
+                None if cells is None else (tuple(cells.rows.tolist()), tuple(cells.cols.tolist())),
+                None if forecast is None else (forecast.height, forecast.width, forecast.frame_channels,
+                                               forecast.screens, tuple(forecast.lags.tolist())),
+                None if window is None else (window.out_shape, window.up, window.down, window.side,
+                                             window.frame_channels, window.screens))
+
+
+def q_values_of(networks: dict[str, DuelingQNetwork], obs: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Each network's Q-values for the same observations, the layers without weights run once for the
+    networks that prepare alike (``DuelingQNetwork.prepare_key``): the leader's and the follower's read
+    the same screens."""
+    prepared: dict[tuple, torch.Tensor] = {}
+    out = {}
+    for name, net in networks.items():
+        key = net.prepare_key
+        if key not in prepared:
+            prepared[key] = net.prepare(obs)
+        out[name] = net.q_values(prepared[key])
+    return out

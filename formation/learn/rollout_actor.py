@@ -20,7 +20,7 @@ from ray.rllib.utils.checkpoints import Checkpointable
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_NO
 
 from formation.learn.config import RunConfig, TrainSettings
-from formation.learn.qnet import team_q_values
+from formation.learn.qnet import q_values_of, team_q_values
 from formation.learn.rollout import GameRollout, concatenate
 from formation.learn.shaping import Potential
 from formation.learn.teacher import Teacher
@@ -160,7 +160,8 @@ class RolloutActor(EnvRunner, Checkpointable):
         explore on their own only with ``train.exploration: independent``."""
         obs = torch.from_numpy(observations)
         with torch.no_grad():
-            q = {m: self.module[m].q_network(obs).numpy() for m in set(self._modules_of_agent)}
+            networks = {m: self.module[m].q_network for m in sorted(set(self._modules_of_agent))}
+            q = {m: v.numpy() for m, v in q_values_of(networks, obs).items()}
         greedy = team_q_values(q, self._modules_of_agent).argmax(-1)
         t = self.run.train
         epsilon = epsilon_at(self.num_env_steps_sampled_lifetime, t)
