@@ -1,11 +1,14 @@
 """Training throughput: this project's actor-replay-learner path against RLlib's stock DQN path.
 
-    .venv/bin/python benchmarks/train_throughput.py [--seconds 60] [--config configs/setting1.yaml]
+    .venv/bin/python benchmarks/train_throughput.py [--seconds 60] [--warmup 2000]
+    .venv/bin/python benchmarks/train_throughput.py --recipe configs/setting1.yaml [--set train.replay_ratio=0.0625]
 
 Same game (setting 1, 84x84 pixels, 4 stacked screens), same modules, same replay ratio, same
 number of rollout actors; each path runs ``--seconds`` after a warm-up. Prints env steps/s and
 learner updates/s of both and their ratio; how sampling alone grows from 1 to 4 rollout actors
-(learner idle); and replay bytes per stored env step of both paths.
+(learner idle); and replay bytes per stored env step of both paths. With ``--recipe``, only this
+project's path on a training config as it trains (teacher, prioritized replay, its network and replay
+ratio; periodic evaluation off), from an untrained network.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import ray  # noqa: E402
 
+from formation.cli import parse_overrides  # noqa: E402
 from formation.learn.algorithm import build_algorithm_config  # noqa: E402
 from formation.learn.config import RunConfig  # noqa: E402
 
@@ -95,9 +99,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--warmup", type=int, default=2000, help="env steps before timing")
+    parser.add_argument("--recipe", help="a training config: time only its own path (formation)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="with --recipe: change a setting of the config, as formation train --set")
     args = parser.parse_args()
     ray.init(num_cpus=os.cpu_count() or 2, include_dashboard=False, log_to_driver=False)
     try:
+        if args.recipe:
+            overrides = parse_overrides(args.set)
+            run = RunConfig.load(args.recipe, {**overrides, "eval.every_env_steps": 10**9})
+            r = measure(run, args.seconds, args.warmup)
+            print(f"{args.recipe} {' '.join(args.set)}: {r['env_steps_per_s']:.1f} env steps/s, "
+                  f"{r['updates_per_s']:.2f} learner updates/s ({r['replay_ratio']:.4f} per env step), "
+                  f"{args.seconds:g} s after {args.warmup} env steps")
+            return
         print(f"setting 1, pixels, 4 stacked screens, replay ratio {BASE['train']['replay_ratio']}, "
               f"batch {BASE['train']['batch_size']}, 1 rollout actor x {BASE['resources']['games_per_actor']} games, "
               f"{args.seconds:g} s each")
