@@ -25,6 +25,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import ray  # noqa: E402
 
 from formation.cli import parse_overrides  # noqa: E402
+from formation.config import ConfigError  # noqa: E402
 from formation.learn.algorithm import build_algorithm_config  # noqa: E402
 from formation.learn.config import RunConfig  # noqa: E402
 
@@ -103,11 +104,16 @@ def main() -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="with --recipe: change a setting of the config, as formation train --set")
     args = parser.parse_args()
+    recipe = None
+    if args.recipe:
+        try:
+            recipe = RunConfig.load(args.recipe, {**parse_overrides(args.set), "eval.every_env_steps": 10**9})
+        except (ConfigError, OSError) as error:
+            parser.exit(2, f"error: --recipe {args.recipe}: {error}\n")
     ray.init(num_cpus=os.cpu_count() or 2, include_dashboard=False, log_to_driver=False)
     try:
-        if args.recipe:
-            overrides = parse_overrides(args.set)
-            run = RunConfig.load(args.recipe, {**overrides, "eval.every_env_steps": 10**9})
+        if recipe is not None:
+            run = recipe
             r = measure(run, args.seconds, args.warmup)
             print(f"{args.recipe} {' '.join(args.set)}: {r['env_steps_per_s']:.1f} env steps/s, "
                   f"{r['updates_per_s']:.2f} learner updates/s ({r['replay_ratio']:.4f} per env step), "
