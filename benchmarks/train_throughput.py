@@ -113,8 +113,7 @@ def main() -> None:
     ray.init(num_cpus=os.cpu_count() or 2, include_dashboard=False, log_to_driver=False)
     try:
         if recipe is not None:
-            run = recipe
-            r = measure(run, args.seconds, args.warmup)
+            r = measure(recipe, args.seconds, args.warmup)
             print(f"{args.recipe} {' '.join(args.set)}: {r['env_steps_per_s']:.1f} env steps/s, "
                   f"{r['updates_per_s']:.2f} learner updates/s ({r['replay_ratio']:.4f} per env step), "
                   f"{args.seconds:g} s after {args.warmup} env steps")

@@ -300,6 +300,14 @@ class DuelingQNetwork(nn.Module):
         self.value = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, 1))
         outputs = N_ACTIONS ** 2 if answers_leader else N_ACTIONS
         self.advantage = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, outputs))
+        # what ``prepare`` depends on: equal keys, equal outputs for the same observations
+        cells, forecast, window = self.cells, self.forecast, self.window
+        self.prepare_key = (self.obs_shape, 1.0 / high,
+                            None if cells is None else (tuple(cells.rows.tolist()), tuple(cells.cols.tolist())),
+                            None if forecast is None else (forecast.height, forecast.width, forecast.frame_channels,
+                                                           forecast.screens, tuple(forecast.lags.tolist())),
+                            None if window is None else (window.out_shape, window.up, window.down, window.side,
+                                                         window.frame_channels, window.screens))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.q_values(self.prepare(obs))
@@ -324,17 +332,6 @@ class DuelingQNetwork(nn.Module):
             x = self.row_scan(x)
         x = self.encoder(x)
         return dueling(self.value(x), self.advantage(x))
-
-    @property
-    def prepare_key(self) -> tuple:
-        """What ``prepare`` depends on: equal keys, equal outputs for the same observations."""
-        cells, forecast, window = self.cells, self.forecast, self.window
-        return (self.obs_shape, float(self.scale),
-                None if cells is None else (tuple(cells.rows.tolist()), tuple(cells.cols.tolist())),
-                None if forecast is None else (forecast.height, forecast.width, forecast.frame_channels,
-                                               forecast.screens, tuple(forecast.lags.tolist())),
-                None if window is None else (window.out_shape, window.up, window.down, window.side,
-                                             window.frame_channels, window.screens))
 
 
 def q_values_of(networks: dict[str, DuelingQNetwork], obs: torch.Tensor) -> dict[str, torch.Tensor]:
