@@ -4,7 +4,7 @@ import pytest
 import yaml
 
 from formation.config import ConfigError
-from formation.learn.config import RunConfig
+from formation.learn.config import RunConfig, TrainSettings
 
 
 def one_line_error(values=None, path=None, overrides=None) -> str:
@@ -55,6 +55,8 @@ def test_yaml_and_dotted_overrides(tmp_path):
     ({"train": {"follower_answers_leader": True, "follower_labels": "response"}}, "train.follower_labels"),
     ({"train": {"row_scan": 8, "screen_cells": False, "obstacle_forecast": False}}, "train.row_scan"),
     ({"train": {"margin_gap": -1}}, "train.margin_gap"),
+    ({"train": {"lr_end": 0}}, "train.lr_end"),
+    ({"train": {"lr_end": "slow"}}, "train.lr_end"),
     ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),
     ({"train": {"leader_window": [1, 2, -3]}}, "train.leader_window"),
     ({"train": {"path": "stock"}}, "train.path"),  # the default recipe is not RLlib's stock DQN
@@ -62,6 +64,17 @@ def test_yaml_and_dotted_overrides(tmp_path):
 ])
 def test_bad_values_name_the_key(values, names):
     assert one_line_error(values).startswith(names)
+
+
+def test_lr_end_holds_lr_for_half_the_steps_then_falls_linearly():
+    from ray.rllib.utils.schedules.scheduler import Scheduler
+
+    from formation.learn.config import lr_schedule
+
+    assert lr_schedule(TrainSettings(lr=3e-4), 1000) == 3e-4
+    schedule = Scheduler(lr_schedule(TrainSettings(lr=1e-3, lr_end=1e-4), 1000), framework="torch", device="cpu")
+    for step, lr in ((0, 1e-3), (500, 1e-3), (750, 5.5e-4), (1000, 1e-4), (5000, 1e-4)):
+        assert schedule.update(timestep=step) == pytest.approx(lr)
 
 
 def test_missing_file_and_bad_yaml(tmp_path):

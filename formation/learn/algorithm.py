@@ -36,7 +36,7 @@ from ray.rllib.utils.metrics import (
 from formation.config import RunFailed
 from formation.evaluate import play_greedy
 from formation.game.render import GRID_PLANES
-from formation.learn.config import RunConfig
+from formation.learn.config import RunConfig, lr_schedule
 from formation.learn.learner import FormationLearner
 from formation.learn.module import DuelingQModule
 from formation.learn.qnet import q_values_of, team_q_values
@@ -154,7 +154,8 @@ def build_stock_config(run: RunConfig) -> StockFormationDQNConfig:
         .learners(num_learners=0 if res.num_gpus_per_learner == 0 else 1, num_gpus_per_learner=res.num_gpus_per_learner)
         .multi_agent(policies=set(module_specs(run)), policy_mapping_fn=mapping)
         .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs=module_specs(run)))
-        .training(lr=t.lr, gamma=t.gamma, train_batch_size=t.batch_size, n_step=t.n_step, double_q=True, dueling=True,
+        .training(lr=lr_schedule(t, t.total_env_steps), gamma=t.gamma, train_batch_size=t.batch_size,
+                  n_step=t.n_step, double_q=True, dueling=True,
                   target_network_update_freq=int(t.target_update_every / t.replay_ratio), tau=1.0,
                   grad_clip=t.grad_clip, grad_clip_by="global_norm",
                   num_steps_sampled_before_learning_starts=t.learning_starts,
@@ -193,7 +194,7 @@ def build_formation_config(run: RunConfig) -> FormationDQNConfig:
                   num_cpus_per_learner=1 if res.num_gpus_per_learner == 0 else 0)
         .multi_agent(policies=set(modules), policy_mapping_fn=mapping)
         .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs=specs))
-        .training(lr=t.lr, gamma=t.gamma, train_batch_size=t.batch_size,
+        .training(lr=lr_schedule(t, t.total_env_steps * t.replay_ratio), gamma=t.gamma, train_batch_size=t.batch_size,
                   target_network_update_freq=t.target_update_every, tau=1.0, grad_clip=t.grad_clip,
                   grad_clip_by="global_norm")
         .reporting(min_sample_timesteps_per_iteration=0, min_time_s_per_iteration=1.0)

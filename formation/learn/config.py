@@ -38,6 +38,9 @@ class TrainSettings:
     gamma: float = 0.97
     n_step: int = 3
     lr: float = 1e-3
+    # null: the learning rate stays at lr; a number: it stays at lr for the first half of the run's learner
+    # updates (total_env_steps x replay_ratio), then falls linearly to lr_end at the last one
+    lr_end: float | None = None
     batch_size: int = 64
     replay_capacity: int = 100_000
     replay_ratio: float = 0.25  # learner updates per env step, whatever the number of actors
@@ -115,6 +118,12 @@ class TrainSettings:
     def __post_init__(self) -> None:
         _number(self, "gamma", 0.0, 1.0)
         _number(self, "lr", 0.0, 1.0, low_open=True)
+        if self.lr_end is not None:
+            try:
+                _number(self, "lr_end", 0.0, 1.0, low_open=True)
+            except ConfigError:
+                raise ConfigError(f"train.lr_end: {self.lr_end!r} is not allowed; "
+                                  "allowed: null or a number in (0.0, 1.0]") from None
         _number(self, "replay_ratio", 0.0, 64.0, low_open=True)
         _number(self, "epsilon_start", 0.0, 1.0)
         _number(self, "epsilon_end", 0.0, 1.0)
@@ -164,6 +173,15 @@ class TrainSettings:
                               "allowed: null or three integers >= 0 (cells above, below, either side)")
         if len(self.channels) != 3 or not all(isinstance(c, int) and c >= 1 for c in self.channels):
             raise ConfigError(f"train.channels: {list(self.channels)!r} is not allowed; allowed: three integers >= 1")
+
+
+def lr_schedule(t: TrainSettings, total_steps: float) -> float | list[list[float]]:
+    """The learning rate as RLlib's ``lr`` takes it: ``t.lr``, or with ``t.lr_end`` a piecewise-linear
+    schedule over ``total_steps`` of the counter the learner reports (learner updates on the formation
+    path, env steps on the stock one): ``lr`` for the first half, then linearly down to ``lr_end``."""
+    if t.lr_end is None:
+        return t.lr
+    return [[0, t.lr], [total_steps / 2, t.lr], [total_steps, t.lr_end]]
 
 
 @dataclass(frozen=True)
