@@ -1,5 +1,7 @@
 """Greedy success of several trained teams acting together: each agent takes the action with the
-highest Q-value averaged over the teams' networks (run folders or exports of the same game).
+highest Q-value averaged over the teams' networks (run folders or exports of the same game). A
+follower that answers the leader reads, in every team's averaged network, the row of the move the
+averaged leader makes.
 
     .venv/bin/python experiments/ensemble.py runs/s1_cells runs/s1_pix_win --episodes 1000 --seed 2000000
 
@@ -13,6 +15,7 @@ import argparse
 import numpy as np
 
 from formation.evaluate import play_greedy
+from formation.learn.qnet import team_q_values
 from formation.policy import load
 
 
@@ -27,8 +30,13 @@ def main() -> None:
     if any(team.game != game for team in teams):
         parser.error("policies: all must be trained on the same game")
 
+    modules = teams[0].agent_modules
+    if any(team.agent_modules != modules for team in teams):
+        parser.error("policies: all must map the agents to the same modules")
+
     def act(obs: np.ndarray) -> np.ndarray:
-        return np.mean([team.q_batch(obs) for team in teams], axis=0).argmax(axis=-1)
+        q = {m: np.mean([team.q_values(obs, m) for team in teams], axis=0) for m in sorted(set(modules))}
+        return team_q_values(q, modules).argmax(axis=-1)
 
     summary = play_greedy(game, act, args.episodes, args.seed)["summary"]
     print(f"{' + '.join(args.policies)}: {args.episodes} episodes (seed {args.seed})")
