@@ -118,12 +118,7 @@ class TrainSettings:
     def __post_init__(self) -> None:
         _number(self, "gamma", 0.0, 1.0)
         _number(self, "lr", 0.0, 1.0, low_open=True)
-        if self.lr_end is not None:
-            try:
-                _number(self, "lr_end", 0.0, 1.0, low_open=True)
-            except ConfigError:
-                raise ConfigError(f"train.lr_end: {self.lr_end!r} is not allowed; "
-                                  "allowed: null or a number in (0.0, 1.0]") from None
+        _number(self, "lr_end", 0.0, 1.0, low_open=True, nullable=True)
         _number(self, "replay_ratio", 0.0, 64.0, low_open=True)
         _number(self, "epsilon_start", 0.0, 1.0)
         _number(self, "epsilon_end", 0.0, 1.0)
@@ -351,11 +346,16 @@ def _integer(obj, name: str, low: int, section: str = "train") -> None:
         raise ConfigError(f"{section}.{name}: {value!r} is not allowed; allowed: an integer >= {low}")
 
 
-def _number(obj, name: str, low: float, high: float, section: str = "train", low_open: bool = False) -> None:
+def _number(obj, name: str, low: float, high: float, section: str = "train", low_open: bool = False,
+            nullable: bool = False) -> None:
     value = getattr(obj, name)
+    if nullable and value is None:
+        return
     ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
     if ok:
         ok = (low < value if low_open else low <= value) and value <= high
     if not ok:
         bound = "(" if low_open else "["
-        raise ConfigError(f"{section}.{name}: {value!r} is not allowed; allowed: a number in {bound}{low}, {high}]")
+        null = "null or " if nullable else ""
+        raise ConfigError(f"{section}.{name}: {value!r} is not allowed; "
+                          f"allowed: {null}a number in {bound}{low}, {high}]")
