@@ -37,7 +37,13 @@ def test_a_follower_that_answers_the_leader_gets_pairs_with_the_leaders_move():
     assert batches["leader"]["actions"].tolist() == [0, 3, 2]  # the leader's own, unchanged
     assert batches["leader"][LABELS].tolist() == [-1, 3, 0]
     assert batches["follower"]["actions"].tolist() == [0 * 4 + 1, 3 * 4 + 0, 2 * 4 + 2]
-    assert batches["follower"][LABELS].tolist() == [0 * 4 + 1, -1, 2 * 4 + 3]  # no label stays none
+    # a label per move of the leader: its label in the row of the move the leader made, none elsewhere
+    assert batches["follower"][LABELS].tolist() == [[1, -1, -1, -1], [-1, -1, -1, -1], [-1, -1, 3, -1]]
+    # with the teacher's answers to every move the leader could make, those fill the other rows
+    sample["answers"] = np.array([[[-1] * 4, [1, 0, 2, -1]], [[-1] * 4, [-1] * 4], [[-1] * 4, [0, 1, 3, 2]]])
+    batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}))
+    assert batches["follower"][LABELS].tolist() == [[1, 0, 2, -1], [-1, -1, -1, -1], [0, 1, 3, 2]]
+    assert batches["leader"][LABELS].tolist() == [-1, 3, 0]  # the leader's stay its own
 
 
 def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_leaders_row():
@@ -53,7 +59,7 @@ def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_
     q[0, 4 * 0 + 0] = 9.0  # far higher, but in another row: it must not count
     labelled = 4 * 2 + 1
     batch = {"actions": torch.tensor([labelled]), "n_step_returns": torch.zeros(1), "n_step_discounts": torch.zeros(1),
-             "teacher_labels": torch.tensor([labelled]), WEIGHTS: torch.ones(1)}
+             "teacher_labels": torch.tensor([[-1, -1, 1, -1]]), WEIGHTS: torch.ones(1)}
     fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(1, 16), "qf_target_next_preds": torch.zeros(1, 16)}
     learner = FormationLearner.__new__(FormationLearner)
     learner._priority, learner._stats = {}, {}
@@ -65,6 +71,36 @@ def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_
     torch.testing.assert_close(loss, expected)
     # the gap (5) less the label's lead in its row (3); with the other row's 9 it would be 9 + 5 - 3
     assert large_margin(row, torch.tensor([1]), 5.0).item() == 2.0
+
+
+def test_the_margin_of_every_labelled_row_counts_once_and_unlabelled_steps_not_at_all():
+    """With answers to every move of the leader, a step's margin is the sum over its labelled rows,
+    each row's label compared within that row; a step with no label adds nothing but its TD loss."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from formation.learn.learner import WEIGHTS, FormationLearner
+    from formation.learn.qnet import large_margin
+
+    q = torch.randn(3, 16, generator=torch.Generator().manual_seed(0))
+    labels = torch.tensor([[1, 0, -1, 3], [-1, -1, -1, -1], [-1, 2, -1, -1]])
+    batch = {"actions": torch.tensor([5, 0, 6]), "n_step_returns": torch.zeros(3), "n_step_discounts": torch.zeros(3),
+             "teacher_labels": labels, WEIGHTS: torch.ones(3)}
+    fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(3, 16), "qf_target_next_preds": torch.zeros(3, 16)}
+    learner = FormationLearner.__new__(FormationLearner)
+    learner._priority, learner._stats = {}, {}
+    config = SimpleNamespace(margin=2.0, margin_gap=5.0)
+    loss = learner.compute_loss_for_module(module_id="follower", config=config, batch=batch, fwd_out=fwd)
+    rows = q.view(3, 4, 4)
+    first = sum(large_margin(rows[0, r].unsqueeze(0), torch.tensor([labels[0, r]]), 5.0) for r in (0, 1, 3))
+    third = large_margin(rows[2, 1].unsqueeze(0), torch.tensor([2]), 5.0)
+    td = torch.nn.functional.smooth_l1_loss(q.gather(1, batch["actions"].unsqueeze(1)).squeeze(1), torch.zeros(3))
+    torch.testing.assert_close(loss, td + 2.0 * (first + third).squeeze() / 2)
+    # priorities: the TD error plus the weighted margin, the unlabelled step its TD error alone
+    td_abs = q.gather(1, batch["actions"].unsqueeze(1)).squeeze(1).abs()
+    expected = td_abs + 2.0 * torch.stack([first.squeeze(), torch.tensor(0.0), third.squeeze()])
+    np.testing.assert_allclose(learner._priority["follower"], expected.numpy(), rtol=1e-5)
 
 
 def test_threaded_module_updates_equal_rllibs_serial_update(monkeypatch):

@@ -119,6 +119,20 @@ def test_mirror_steps_mirrors_the_chosen_steps_whole_and_leaves_the_rest():
         assert (out[key] == sample[key]).all()
 
 
+def test_a_mirrored_step_answers_the_mirrored_leader_move_with_the_mirrored_move():
+    sample = replay_sample()
+    rng = np.random.default_rng(1)
+    sample["answers"] = rng.integers(-1, 4, (64, 2, 4))
+    which = np.arange(64) % 2 == 0
+    out = mirror_steps(sample, which)
+    answers = sample["answers"]
+    assert (out["answers"][~which] == answers[~which]).all()
+    for move in range(4):  # the answer to a move, mirrored, is the answer to the mirrored move
+        before, after = answers[which][..., move], out["answers"][which][..., MIRRORED_MOVE[move]]
+        assert (after[before < 0] == -1).all()
+        assert (after[before >= 0] == MIRRORED_MOVE[before[before >= 0]]).all()
+
+
 def test_the_learner_mirrors_about_half_of_each_batch_with_train_mirror():
     pytest.importorskip("ray")
     from formation.learn.algorithm import build_algorithm_config

@@ -6,7 +6,7 @@ import pytest
 
 from formation.config import GameConfig
 from formation.learn.replay import Chunk, FrameReplay, SumTree
-from formation.learn.rollout import GameRollout
+from formation.learn.rollout import GameRollout, concatenate
 
 
 def play(config, batch, steps, capacity, seed=0, n_agents=2):
@@ -147,3 +147,24 @@ def test_a_terminated_step_needs_no_terminal_record():
     np.testing.assert_allclose(returns, [[2, 2], [2, 2]])
     np.testing.assert_allclose(discounts, [0, 0])
     assert len(replay.sample(8, n_step=3, gamma=0.5)["ids"]) == 8
+
+
+def test_labels_and_answers_come_back_with_their_own_steps():
+    replay = FrameReplay(100, (2, 2, 1), n_agents=2, frame_stack=1)
+    with_answers = hand_chunk([[0, 0]] * 6, [0] * 6, [0] * 6, first_flags=[1, 0, 0, 0, 0, 0])
+    with_answers.labels = np.array([[k % 4, (k + 1) % 4] for k in range(6)], np.int8)
+    with_answers.answers = np.array([[[-1] * 4, [(k + m) % 4 for m in range(4)]] for k in range(6)], np.int8)
+    without = hand_chunk([[0, 0]] * 4, [0] * 3 + [1], [0] * 4, stream=1, first_flags=[1, 0, 0, 0])
+    without.labels = np.full((4, 2), -1, np.int8)  # no answers
+    chunk = concatenate([with_answers, without])
+    assert chunk.answers.shape == (10, 2, 4) and (chunk.answers[6:] == -1).all()
+    replay.add(chunk)
+    batch = replay.sample(200, n_step=1, gamma=0.9)
+    frame = batch["obs"][:, 0, 0, 0]  # hand_chunk's frames number the records of a chunk
+    stream0 = batch["ids"] < 6
+    k = frame[stream0].astype(np.int64)
+    assert (batch["labels"][stream0] == np.stack([k % 4, (k + 1) % 4], 1)).all()
+    assert (batch["answers"][stream0, 1] == (k[:, None] + np.arange(4)) % 4).all()
+    assert (batch["answers"][stream0, 0] == -1).all()
+    assert (batch["labels"][~stream0] == -1).all() and (batch["answers"][~stream0] == -1).all()
+    assert stream0.any() and (~stream0).any()

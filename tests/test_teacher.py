@@ -259,7 +259,7 @@ def test_rollout_actor_learns_from_response_labels_but_demonstrations_play_the_t
     game.steps[:] = 1
     greedy = np.array([[((j[0] if j else 0) + 1) % 4, 0] for j in first])
     joints = actor._teacher_joints()
-    labels = actor._labels(joints, greedy, greedy)
+    labels, _ = actor._labels(joints, greedy, greedy)
     changed = 0
     for i, scenario in enumerate(scenarios):
         joint = teacher.label(scenario)
@@ -327,7 +327,8 @@ def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_
     game.steps[:] = 1
     joints = actor._teacher_joints()
     played = np.array([[((j[0] + 1) % 4) if j[0] >= 0 else 0, 0] for j in joints])
-    labels = actor._labels(joints, greedy, played)
+    labels, answers = actor._labels(joints, greedy, played)
+    assert answers is None  # train.answer_every_leader_move is off
     for i in range(game.batch_size):
         joint = teacher.label(game.scenario(i))
         if joint is None:
@@ -336,6 +337,40 @@ def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_
         answer = teacher.answer(game.scenario(i), joint, int(played[i, 0]))
         assert labels[i, 0] == joint[0]  # the leader learns the teacher's move
         assert labels[i, 1] == (answer[1] if answer is not None else -1)
+
+
+def test_with_answer_every_leader_move_a_follower_learns_its_answer_to_each_move_the_leader_could_make():
+    pytest.importorskip("ray")
+    from formation.learn.algorithm import build_algorithm_config
+    from formation.learn.config import RunConfig
+    from formation.learn.rollout_actor import RolloutActor
+
+    run = RunConfig.load("configs/smoke.yaml", {"train.follower_answers_leader": True,
+                                                "train.answer_every_leader_move": True})
+    actor = RolloutActor(config=build_algorithm_config(run))
+    game, teacher = actor.rollout.game, actor._teacher
+    game.steps[:] = 1
+    joints = actor._teacher_joints()
+    played = np.array([[((j[0] + 1) % 4) if j[0] >= 0 else 0, 0] for j in joints])
+    labels, answers = actor._labels(joints, greedy=played, actions=played)
+    assert answers.shape == (game.batch_size, 2, 4)
+    assert (answers[:, 0] == -1).all()  # the leader has no answers to learn
+    taught = none = 0
+    for i in range(game.batch_size):
+        joint = teacher.label(game.scenario(i))
+        if joint is None:
+            assert (labels[i] == -1).all() and (answers[i] == -1).all()
+            continue
+        for move in range(4):
+            answer = teacher.answer(game.scenario(i), joint, move)
+            assert answers[i, 1, move] == (answer[1] if answer is not None else -1)
+            taught += answer is not None
+            none += answer is None
+        assert answers[i, 1, joint[0]] == joint[1]  # the label's own leader move: the label
+        assert labels[i, 0] == joint[0] and labels[i, 1] == answers[i, 1, played[i, 0]]  # the move played
+    assert taught > 2 * game.batch_size  # most rows are taught, not only the played one
+    chunk = actor.rollout.step(played, labels=labels, answers=answers)
+    assert (chunk.answers[: game.batch_size] == answers).all()
 
 
 def test_labels_of_a_batch_are_each_states_own_label_and_robust_first_steps_keep_the_most_paths():

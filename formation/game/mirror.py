@@ -42,15 +42,19 @@ def mirror_scenario(scenario: Scenario, config: GameConfig) -> Scenario:
 
 def mirror_steps(sample: dict[str, np.ndarray], which: np.ndarray) -> dict[str, np.ndarray]:
     """A replay sample (``obs`` and ``next_obs`` as (N, H, W, C), ``actions`` and ``labels`` as (N, agents),
-    labels -1 where none) with the steps ``which`` (N bools) seen in a mirror; the others, and the
+    optionally ``answers`` as (N, agents, moves); labels and answers -1 where none) with the steps ``which`` (N bools) seen in a mirror; the others, and the
     rewards, discounts and weights, as they were. A new dict; the arrays given are not written to."""
     out = dict(sample)
     for key in ("obs", "next_obs"):
         frames = sample[key].copy()
         frames[which] = frames[which][:, :, ::-1]
         out[key] = frames
-    for key in ("actions", "labels"):
+    for key in ("actions", "labels", "answers"):
+        if key not in sample:
+            continue
         moves = sample[key]
+        if key == "answers":  # the answer to a leader's move is, in the mirror, the answer to the mirrored move
+            moves = moves[..., MIRRORED_MOVE]
         mirrored = np.where(moves >= 0, MIRRORED_MOVE[np.clip(moves, 0, None)], moves).astype(moves.dtype)
-        out[key] = np.where(which[:, None], mirrored, moves)
+        out[key] = np.where(which.reshape(-1, *[1] * (moves.ndim - 1)), mirrored, sample[key])
     return out

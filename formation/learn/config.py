@@ -86,6 +86,10 @@ class TrainSettings:
     # makes its move in the row of the move the leader makes (formation.learn.qnet.team_q_values); DAgger
     # labels it with the teacher's answer to that move (formation.learn.teacher.Teacher.answer)
     follower_answers_leader: bool = True
+    # with follower_answers_leader, DAgger also labels the rows of the moves the leader did not make: the
+    # teacher's answer to every move the leader could make there (formation.learn.teacher.Teacher.answers), not
+    # only to the one it made
+    answer_every_leader_move: bool = False
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True
     hidden: int = 256
@@ -138,7 +142,8 @@ class TrainSettings:
         _integer(self, "row_scan", 0)
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
-                     "tolerant_formation", "obstacle_forecast", "follower_answers_leader", "mirror"):
+                     "tolerant_formation", "obstacle_forecast", "follower_answers_leader", "mirror",
+                     "answer_every_leader_move"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:
@@ -154,6 +159,9 @@ class TrainSettings:
             raise ConfigError(f"train.follower_labels: {self.follower_labels!r} is not allowed with "
                               "train.follower_answers_leader: true (its labels answer the leader's move); "
                               "allowed: teacher")
+        if self.answer_every_leader_move and not (self.follower_answers_leader and self.dagger):
+            raise ConfigError("train.answer_every_leader_move: true is not allowed without "
+                              "train.follower_answers_leader: true and train.dagger: true; allowed: false")
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
         if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0
@@ -310,7 +318,8 @@ class RunConfig:
 # keys added to the config after runs were saved without them, with the value those runs trained with
 LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("train", "screen_cells"): False,
                                           ("train", "obstacle_forecast"): False, ("train", "row_scan"): 0,
-                                          ("train", "follower_answers_leader"): False, ("train", "mirror"): False}
+                                          ("train", "follower_answers_leader"): False, ("train", "mirror"): False,
+                                          ("train", "answer_every_leader_move"): False}
 
 
 def _read_yaml(path: str | Path) -> dict[str, Any]:

@@ -33,8 +33,10 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
                    answering: frozenset[str] = frozenset()) -> dict[str, dict[str, np.ndarray]]:
     """Split a replay sample (all agents) into one batch per module; agents that share a module
     (followers with one policy) contribute one row each for every sampled step. A module in
-    ``answering`` (it answers the leader) gets actions and labels as pairs with the leader's move,
-    ``4 * leader + own`` (its Q-values' index), labels -1 where it has none."""
+    ``answering`` (it answers the leader) gets actions as pairs with the leader's move, ``4 * leader +
+    own`` (its Q-values' index), and labels as one own move per move of the leader, (N, 4): the
+    sample's ``answers`` where it has them, its label in the row of the move the leader made, -1 where
+    there is none."""
     rows: dict[str, list[int]] = {}
     for agent, module in enumerate(module_of_agent):
         rows.setdefault(module, []).append(agent)
@@ -46,12 +48,23 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
         labels = [sample["labels"][:, a] for a in agents]
         if module in answering:
             actions = [N_ACTIONS * leader + a for a in actions]
-            labels = [np.where(b >= 0, N_ACTIONS * leader + b, -1) for b in labels]
+            labels = [_answer_rows(sample, a, leader) for a in agents]
         out[module] = {Columns.OBS: shared["obs"], Columns.NEXT_OBS: shared["next_obs"],
                        Columns.ACTIONS: np.concatenate(actions),
                        RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
                        DISCOUNTS: shared["discounts"], LABELS: np.concatenate(labels), WEIGHTS: shared["weights"]}
     return out
+
+
+def _answer_rows(sample: dict[str, np.ndarray], agent: int, leader: np.ndarray) -> np.ndarray:
+    """(N, 4): ``agent``'s teacher move for each move of the leader (-1: none), its label in the row of
+    the move the leader made."""
+    n = len(leader)
+    rows = sample["answers"][:, agent].copy() if "answers" in sample else np.full((n, N_ACTIONS), -1, np.int64)
+    label = sample["labels"][:, agent]
+    taught = np.flatnonzero(label >= 0)
+    rows[taught, leader[taught]] = label[taught]
+    return rows
 
 
 def _repeat(a: np.ndarray, copies: int) -> np.ndarray:
@@ -149,13 +162,15 @@ class FormationLearner(DQNTorchLearner):
         if config.margin > 0:
             labels = batch[LABELS].long()
             taught = labels >= 0
+            if labels.dim() == 2:  # a module that answers the leader: a label per move of the leader (its row)
+                taught_rows = taught
+                taught = taught_rows.any(1)
             if taught.any():
                 # DQfD: J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), a_E the teacher's (planner's) action
                 labels = labels.clamp(min=0)
-                if q.shape[1] == N_ACTIONS ** 2:  # a module that answers the leader: the row of the leader's move
-                    q_row = q.view(-1, N_ACTIONS, N_ACTIONS).gather(1, (labels // N_ACTIONS).view(-1, 1, 1).expand(
-                        -1, 1, N_ACTIONS)).squeeze(1)
-                    large_margin = large_margin_loss(q_row, labels % N_ACTIONS, config.margin_gap)
+                if labels.dim() == 2:  # one margin per labelled row, summed
+                    rows = large_margin_loss(q.reshape(-1, N_ACTIONS), labels.reshape(-1), config.margin_gap)
+                    large_margin = (rows.view(-1, N_ACTIONS) * taught_rows).sum(1)
                 else:
                     large_margin = large_margin_loss(q, labels, config.margin_gap)
                 loss = loss + config.margin * large_margin[taught].mean()

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from formation.game.core import MOVES
+
 NONE = -1
 
 
@@ -33,7 +35,9 @@ class Chunk:
     after the last step, no action); ``actions`` (N, A) int; ``rewards`` (N, A) float;
     ``terminated`` / ``truncated`` (N,) bool: this record's step ended the episode that way.
     ``labels`` (N, A) int, optional: a teacher's action for each agent in this state (the
-    planner's, for demonstrations and DAgger), -1 where there is none.
+    planner's, for demonstrations and DAgger), -1 where there is none. ``answers`` (N, A, M) int,
+    optional: each agent's teacher action if the leader made each of its M moves
+    (``train.answer_every_leader_move``), -1 where there is none.
     """
 
     streams: np.ndarray
@@ -45,6 +49,7 @@ class Chunk:
     terminated: np.ndarray
     truncated: np.ndarray
     labels: np.ndarray | None = None
+    answers: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.streams)
@@ -70,6 +75,7 @@ class FrameReplay:
         self.truncated = np.zeros(capacity, bool)
         self.terminal = np.zeros(capacity, bool)
         self.labels = np.full((capacity, n_agents), -1, np.int8)
+        self.answers = np.full((capacity, n_agents, len(MOVES)), -1, np.int8)
         self.added = 0  # records ever added; the next record's id
         self._stream_last: dict[int, int] = {}
         self.prioritized = prioritized
@@ -95,6 +101,7 @@ class FrameReplay:
         self.truncated[slots] = chunk.truncated
         self.terminal[slots] = chunk.terminal
         self.labels[slots] = chunk.labels if chunk.labels is not None else -1
+        self.answers[slots] = chunk.answers if chunk.answers is not None else -1
         self.next[slots] = NONE
         # Link each record to the previous record of its stream (itself at an episode start).
         prev = np.empty(n, np.int64)
@@ -126,7 +133,8 @@ class FrameReplay:
     @property
     def nbytes(self) -> int:
         return sum(a.nbytes for a in (self.frames, self.ids, self.prev, self.next, self.actions, self.rewards,
-                                      self.terminated, self.truncated, self.terminal, self.labels))
+                                      self.terminated, self.truncated, self.terminal, self.labels,
+                                      self.answers))
 
     # ------------------------------------------------------------------ reading
     def _valid(self, ids: np.ndarray) -> np.ndarray:
@@ -178,7 +186,8 @@ class FrameReplay:
 
     def sample(self, batch_size: int, n_step: int = 1, gamma: float = 0.99, beta: float = 0.4) -> dict:
         """A batch of transitions for all agents: obs and next_obs stacks, actions, n-step returns,
-        discounts (0 after termination), teacher labels, and ids / importance weights for priorities."""
+        discounts (0 after termination), teacher labels and answers, and ids / importance weights for
+        priorities."""
         if self.size == 0:
             raise ValueError("replay: sample() on an empty replay")
         picked_ids = []
@@ -200,7 +209,8 @@ class FrameReplay:
         next_obs, _ = self.stack(next_ids)
         slots = ids % self.capacity
         batch = {"obs": obs, "next_obs": next_obs, "actions": self.actions[slots].astype(np.int64),
-                 "returns": returns, "discounts": discounts, "labels": self.labels[slots].astype(np.int64), "ids": ids}
+                 "returns": returns, "discounts": discounts, "labels": self.labels[slots].astype(np.int64),
+                 "answers": self.answers[slots].astype(np.int64), "ids": ids}
         if self._priority is not None:
             p = self._priority.get(slots) / self._priority.total
             weights = (self.size * p) ** (-beta)

@@ -12,6 +12,7 @@ import numpy as np
 
 from formation.config import GameConfig
 from formation.game import BatchedGame, Observer, Scenario
+from formation.game.core import MOVES
 from formation.learn.replay import Chunk
 
 
@@ -63,9 +64,11 @@ class GameRollout:
     def frame_shape(self) -> tuple[int, int, int]:
         return tuple(self.observer.frame_shape)
 
-    def step(self, actions: np.ndarray, labels: np.ndarray | None = None) -> Chunk:
+    def step(self, actions: np.ndarray, labels: np.ndarray | None = None, answers: np.ndarray | None = None
+             ) -> Chunk:
         """Play one joint action per game; return the records of this step. ``labels`` (B, 1+k):
-        a teacher's action for each agent in the state before the step, -1 where there is none."""
+        a teacher's action for each agent in the state before the step, -1 where there is none;
+        ``answers`` (B, 1+k, moves): its action for each move the leader could make there (see ``Chunk``)."""
         g = self.game
         frames_before, first = self._frames, self._first
         g.step(actions)
@@ -78,7 +81,8 @@ class GameRollout:
         records = Chunk(streams=self.streams, frames=frames_before, first=first,
                         terminal=np.zeros(self.batch_size, bool), actions=np.asarray(actions, np.int8),
                         rewards=rewards, terminated=g.terminated.copy(), truncated=g.truncated.copy(),
-                        labels=np.full(actions.shape, -1, np.int8) if labels is None else labels.astype(np.int8))
+                        labels=np.full(actions.shape, -1, np.int8) if labels is None else labels.astype(np.int8),
+                        answers=None if answers is None else answers.astype(np.int8))
         self._returns += g.rewards
         if done.any():
             ended = np.flatnonzero(done)
@@ -122,5 +126,11 @@ class GameRollout:
 
 
 def concatenate(chunks: list[Chunk]) -> Chunk:
+    """One chunk of the records of ``chunks``, in order; ``answers`` -1 for those without, None if none has."""
     fields = ("streams", "frames", "first", "terminal", "actions", "rewards", "terminated", "truncated", "labels")
-    return Chunk(**{f: np.concatenate([getattr(c, f) for c in chunks]) for f in fields})
+    out = Chunk(**{f: np.concatenate([getattr(c, f) for c in chunks]) for f in fields})
+    if any(c.answers is not None for c in chunks):
+        moves = len(MOVES)
+        out.answers = np.concatenate([c.answers if c.answers is not None
+                                      else np.full((len(c), c.actions.shape[1], moves), -1, np.int8) for c in chunks])
+    return out

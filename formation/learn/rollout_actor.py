@@ -19,6 +19,7 @@ from ray.rllib.env.env_runner import EnvRunner
 from ray.rllib.utils.checkpoints import Checkpointable
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_NO
 
+from formation.game import MOVES
 from formation.learn.config import RunConfig, TrainSettings
 from formation.learn.qnet import q_values_of, team_q_values
 from formation.learn.rollout import GameRollout, concatenate
@@ -134,16 +135,27 @@ class RolloutActor(EnvRunner, Checkpointable):
                 joints[i] = joint
         return joints
 
-    def _labels(self, joints: np.ndarray, greedy: np.ndarray, actions: np.ndarray) -> np.ndarray:
-        """The labels to learn from: the teacher's ``joints``; with ``train.follower_labels: response``
-        the followers' moves answering the leader's ``greedy`` move; with
-        ``train.follower_answers_leader`` the teacher's answer to the move the leader plays
-        (``actions``), -1 for the followers where no move of theirs survives it."""
+    def _labels(self, joints: np.ndarray, greedy: np.ndarray, actions: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The labels to learn from, and the answers (``Chunk``) or None: the teacher's ``joints``; with
+        ``train.follower_labels: response`` the followers' moves answering the leader's ``greedy`` move;
+        with ``train.follower_answers_leader`` the teacher's answer to the move the leader plays
+        (``actions``), -1 for the followers where no move of theirs survives it; with
+        ``train.answer_every_leader_move`` also its answers to every move the leader could have made."""
         t, game = self.run.train, self.rollout.game
         if t.follower_labels != "response" and not t.follower_answers_leader:
-            return joints
+            return joints, None
         labels = joints.copy()
         leader = actions[:, 0] if t.follower_answers_leader else greedy[:, 0]
+        if t.answer_every_leader_move:
+            answers = np.full((*joints.shape, len(MOVES)), -1, np.int8)
+            for i in np.flatnonzero(joints[:, 0] >= 0):
+                scenario, joint = game.scenario(i), tuple(int(a) for a in joints[i])
+                for move, answer in enumerate(self._teacher.answers(scenario, joint)):
+                    if answer is not None:
+                        answers[i, 1:, move] = answer[1:]
+                labels[i, 1:] = answers[i, 1:, leader[i]]
+            return labels, answers
         # where the leader makes the teacher's move, the label stands as it is
         for i in np.flatnonzero((joints[:, 0] >= 0) & (leader != joints[:, 0])):
             scenario, first, joint = game.scenario(i), game.steps[i] == 0, tuple(int(a) for a in joints[i])
@@ -152,7 +164,7 @@ class RolloutActor(EnvRunner, Checkpointable):
                 labels[i, 1:] = answer[1:] if answer is not None else -1
             else:
                 labels[i] = self._teacher.respond(scenario, joint, int(leader[i]), first)
-        return labels
+        return labels, None
 
     def _actions(self, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The greedy actions (games, agents), and the epsilon-greedy ones to play. Followers that
@@ -188,9 +200,10 @@ class RolloutActor(EnvRunner, Checkpointable):
                     actions[i] = np.where(joints[i] >= 0, joints[i], actions[i])
                 elif self._plans[i]:
                     actions[i] = labels[i] = self._plans[i].pop(0)
+            answers = None
             if run.train.dagger:
-                labels = self._labels(joints, greedy, actions)
-            chunks.append(rollout.step(actions, labels=labels))
+                labels, answers = self._labels(joints, greedy, actions)
+            chunks.append(rollout.step(actions, labels=labels, answers=answers))
             if not run.train.dagger:
                 for i in np.flatnonzero(rollout.game.steps[: self._demo_games] == 0):
                     self._plan(int(i))

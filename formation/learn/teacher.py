@@ -100,6 +100,11 @@ class Teacher:
         surviving = (j for j in self._order(scenario) if j[0] == leader_move and self._survives(scenario, j))
         return shortest or next(surviving, None)
 
+    def answers(self, scenario: Scenario, joint: tuple[int, ...]) -> list[tuple[int, ...] | None]:
+        """``answer`` to each move the leader could make, in the order of the moves
+        (``train.answer_every_leader_move``)."""
+        return [self.answer(scenario, joint, move) for move in range(len(MOVES))]
+
     def _shortest_with(self, scenario: Scenario, leader_move: int) -> tuple[int, ...] | None:
         """The first joint action in the order with ``leader_move`` that starts a shortest path; None if none does."""
         starts = self._starts(scenario) or set()
