@@ -64,6 +64,24 @@ def test_prioritized_replay_gets_the_learners_priorities(cluster):
         algo.stop()
 
 
+def test_answers_to_every_leader_move_reach_the_replay_and_the_learner_learns_from_them(cluster):
+    run, algo = build(1, answer_every_leader_move=True, learning_starts=500)
+    try:
+        train_until(algo, 1500)
+        assert algo.counters["updates"] > 0  # the learner took the batches with a row of labels per step
+        batch = ray.get(algo.replays[0].sample.remote(256, 1, 0.97))
+        answers, labels, leader = batch["answers"], batch["labels"], batch["actions"][:, 0]
+        taught = labels[:, 1] >= 0
+        # the label of the move the leader played is the answer to that move ...
+        assert taught.any() and (answers[taught, 1, leader[taught]] == labels[taught, 1]).all()
+        # ... and the other moves have answers too
+        others = (answers[:, 1] >= 0).sum(1) - taught
+        assert (others >= 1).mean() > 0.5
+        assert (answers[:, 0] == -1).all()
+    finally:
+        algo.stop()
+
+
 def test_train_writes_a_checkpoint_and_resume_continues(cluster, tmp_path):
     from formation.train import train
 
