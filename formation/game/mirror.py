@@ -42,8 +42,9 @@ def mirror_scenario(scenario: Scenario, config: GameConfig) -> Scenario:
 
 def mirror_steps(sample: dict[str, np.ndarray], which: np.ndarray) -> dict[str, np.ndarray]:
     """A replay sample (``obs`` and ``next_obs`` as (N, H, W, C), ``actions`` and ``labels`` as (N, agents),
-    optionally ``answers`` as (N, agents, moves); labels and answers -1 where none) with the steps ``which`` (N bools) seen in a mirror; the others, and the
-    rewards, discounts and weights, as they were. A new dict; the arrays given are not written to."""
+    optionally ``answers`` as (N, agents, moves); labels and answers -1 where none) with the steps ``which``
+    (N bools) seen in a mirror; the others, and the rewards, discounts and weights, as they were. A new
+    dict; the arrays given are not written to."""
     out = dict(sample)
     for key in ("obs", "next_obs"):
         frames = sample[key].copy()
