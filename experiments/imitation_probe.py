@@ -25,7 +25,7 @@ from torch import nn
 
 from formation.config import GameConfig
 from formation.game import BatchedGame, Observer
-from formation.learn.qnet import DuelingQNetwork
+from formation.learn.qnet import DuelingQNetwork, large_margin_sets
 from formation.learn.teacher import Teacher
 
 
@@ -40,7 +40,7 @@ def collect(args: argparse.Namespace) -> None:
     rng = np.random.default_rng(args.seed)
     episode = np.arange(games)
     next_episode = games
-    xs, ys, eps, start = [], [], [], time.time()
+    xs, ys, eps, sets, start = [], [], [], [], time.time()
     n = 0
     while n < args.states:
         actions = rng.integers(0, 4, (games, 2))
@@ -51,6 +51,7 @@ def collect(args: argparse.Namespace) -> None:
                 continue
             xs.append(obs[i])
             ys.append(joint)
+            sets.append(acceptable(teacher, game.scenario(i), joint, game.steps[i] == 0))
             eps.append(episode[i])
             n += 1
             if rng.random() >= args.explore:
@@ -63,21 +64,37 @@ def collect(args: argparse.Namespace) -> None:
                 episode[i], next_episode = next_episode, next_episode + 1
         obs = observer.observe(done).copy()
     print(f"{n} labelled states from {next_episode} episodes in {time.time() - start:.0f} s", flush=True)
-    np.savez_compressed(args.out, obs=np.stack(xs), labels=np.array(ys, np.int64), episodes=np.array(eps))
+    np.savez_compressed(args.out, obs=np.stack(xs), labels=np.array(ys, np.int64), episodes=np.array(eps),
+                        acceptable=np.stack(sets))
+
+
+def acceptable(teacher: Teacher, scenario, joint: tuple[int, ...], first_step: bool) -> np.ndarray:
+    """(16,) bool: the joint actions (4 * leader's move + follower's move) that start a shortest
+    path; only the label on a first step (the robust label)."""
+    mask = np.zeros(16, bool)
+    if first_step:
+        mask[4 * joint[0] + joint[1]] = True
+        return mask
+    for leader, follower in teacher._starts(scenario) or [joint]:
+        mask[4 * leader + follower] = True
+    return mask
 
 
 def fit(args: argparse.Namespace) -> None:
     torch.manual_seed(0)
     parts = [np.load(path) for path in args.data]
     obs, labels = np.concatenate([p["obs"] for p in parts]), np.concatenate([p["labels"] for p in parts])
+    sets = torch.from_numpy(np.concatenate([p["acceptable"] for p in parts]).reshape(-1, 4, 4))
+    leader_ok = sets.any(2)  # (N, 4): the leader's moves that start a shortest path with some follower move
     episodes = np.concatenate([p["episodes"] + 1_000_000 * k for k, p in enumerate(parts)])
     train = episodes < np.quantile(episodes, 0.8)
     x_train, y_train = torch.from_numpy(obs[train]), torch.from_numpy(labels[train])
     x_test, y_test = torch.from_numpy(obs[~train]), torch.from_numpy(labels[~train])
+    ok_train, ok_test = leader_ok[torch.from_numpy(train)], leader_ok[torch.from_numpy(~train)]
     print(f"{len(x_train)} training states, {len(x_test)} test states; "
           f"labels F/FL/FR/S of the leader: {np.bincount(labels[:, 0], minlength=4) / len(labels)}", flush=True)
     shape = obs.shape[1:]
-    nets = [make_net(args.net, shape, args, agent) for agent in range(2)]
+    nets = [make_net(args.net, shape, args, agent) for agent in range(args.agents)]
     print(f"{sum(p.numel() for p in nets[0].parameters())} parameters per net", flush=True)
     optims = [torch.optim.Adam(n.parameters(), lr=args.lr) for n in nets]
     rng = np.random.default_rng(0)
@@ -85,7 +102,13 @@ def fit(args: argparse.Namespace) -> None:
     for it in range(1, args.iterations + 1):
         idx = torch.from_numpy(rng.integers(0, len(x_train), args.batch))
         for agent, (net, opt) in enumerate(zip(nets, optims)):
-            loss = nn.functional.cross_entropy(net(x_train[idx]), y_train[idx, agent])
+            logits = net(x_train[idx])
+            accepted = ok_train[idx] if agent == 0 and args.leader_labels == "sets" else \
+                nn.functional.one_hot(y_train[idx, agent], 4).bool()
+            if args.loss == "margin":  # DQfD's large margin (the learner's), towards any accepted move
+                loss = large_margin_sets(logits, accepted, 1.0).mean()
+            else:  # cross-entropy of the accepted moves' summed probability
+                loss = (logits.logsumexp(1) - logits.masked_fill(~accepted, -1e9).logsumexp(1)).mean()
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -95,9 +118,11 @@ def fit(args: argparse.Namespace) -> None:
                 train_pred = [net(x_train[:len(x_test)]).argmax(1) for net in nets]
             right = [(p == y_test[:, a]) for a, p in enumerate(test)]
             right_train = [(p == y_train[:len(x_test), a]).float().mean().item() for a, p in enumerate(train_pred)]
+            on_path = ok_test[torch.arange(len(x_test)), test[0]].float().mean()
+            follower = (f"follower {right[1].float().mean():.4f} both {(right[0] & right[1]).float().mean():.4f}; "
+                        if len(right) > 1 else "")
             print(f"it {it}: test agreement leader {right[0].float().mean():.4f} "
-                  f"follower {right[1].float().mean():.4f} "
-                  f"both {(right[0] & right[1]).float().mean():.4f}; train both "
+                  f"(a shortest path's move: {on_path:.4f}) {follower}train "
                   f"{min(right_train):.4f}+; {time.time() - start:.0f} s", flush=True)
 
 
@@ -161,6 +186,10 @@ def main() -> None:
     f.add_argument("--report", type=int, default=1000)
     f.add_argument("--forecast", action="store_true", help="--net window: with train.obstacle_forecast")
     f.add_argument("--row-scan", type=int, default=0, help="--net window: train.row_scan planes")
+    f.add_argument("--loss", default="cross-entropy", choices=("cross-entropy", "margin"))
+    f.add_argument("--agents", type=int, default=2, choices=(1, 2), help="1: the leader's network only")
+    f.add_argument("--leader-labels", default="label", choices=("label", "sets"),
+                   help="sets: the leader learns to pick any move that starts a shortest path")
     args = p.parse_args()
     torch.set_num_threads(1)
     collect(args) if args.command == "collect" else fit(args)

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from formation.learn.learner import DISCOUNTS, LABELS, RETURNS, module_batches
+from formation.learn.learner import ACCEPTED, DISCOUNTS, LABELS, RETURNS, module_batches
 
 
 def test_followers_sharing_a_policy_each_contribute_their_own_rows():
@@ -44,6 +44,60 @@ def test_a_follower_that_answers_the_leader_gets_pairs_with_the_leaders_move():
     batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}))
     assert batches["follower"][LABELS].tolist() == [[1, 0, 2, -1], [-1, -1, -1, -1], [0, 1, 3, 2]]
     assert batches["leader"][LABELS].tolist() == [-1, 3, 0]  # the leader's stay its own
+
+
+def bits(*joints):
+    return sum(1 << (4 * leader + follower) for leader, follower in joints)
+
+
+def test_with_any_shortest_move_each_module_accepts_its_moves_of_the_accepted_joint_actions():
+    sample = {"obs": np.zeros((3, 2, 2, 1), np.uint8), "next_obs": np.zeros((3, 2, 2, 1), np.uint8),
+              "actions": np.array([[0, 0], [1, 2], [3, 3]]), "returns": np.zeros((3, 2), np.float32),
+              "discounts": np.ones(3, np.float32), "labels": np.array([[0, 0], [0, 1], [-1, -1]]),
+              "answers": np.array([[[-1] * 4, [0, 1, 2, -1]], [[-1] * 4, [1, 1, 3, 3]], [[-1] * 4, [-1] * 4]]),
+              "accepted": np.array([bits((0, 0), (0, 1), (2, 1)), bits((0, 1)), 0]),
+              "weights": np.ones(3, np.float32)}
+    batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}), any_shortest_move=True)
+    leader, follower = batches["leader"][ACCEPTED], batches["follower"][ACCEPTED]
+    assert leader.shape == (3, 4) and follower.shape == (3, 4, 4)
+    # the leader: forward and forward-right start a shortest path in the first step, forward alone in the
+    # second; nothing where there is no label
+    assert leader.tolist() == [[True, False, True, False], [True, False, False, False], [False] * 4]
+    # the follower, per leader move: the moves that start one with it, and the answer's own move
+    assert follower[0].tolist() == [[True, True, False, False], [False, True, False, False],
+                                    [False, True, True, False], [False] * 4]
+    assert follower[1].tolist() == [[False, True, False, False], [False, True, False, False],
+                                    [False, False, False, True], [False, False, False, True]]
+    assert not follower[2].any()
+    assert ACCEPTED not in module_batches(sample, ["leader", "follower"], frozenset({"follower"}))["leader"]
+
+
+def test_the_margin_with_accepted_moves_compares_with_the_best_accepted_move_in_each_row():
+    from types import SimpleNamespace
+
+    import torch
+
+    from formation.learn.learner import WEIGHTS, FormationLearner
+    from formation.learn.qnet import large_margin_sets
+
+    q = torch.randn(2, 16, generator=torch.Generator().manual_seed(1))
+    accepted = torch.zeros(2, 4, 4, dtype=torch.bool)
+    accepted[0, 0, [0, 1]] = True  # two moves accepted in the row of leader move 0
+    accepted[0, 2, 3] = True
+    batch = {"actions": torch.tensor([1, 9]), "n_step_returns": torch.zeros(2), "n_step_discounts": torch.zeros(2),
+             "teacher_labels": torch.tensor([[0, -1, 3, -1], [-1] * 4]), ACCEPTED: accepted, WEIGHTS: torch.ones(2)}
+    fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(2, 16), "qf_target_next_preds": torch.zeros(2, 16)}
+    learner = FormationLearner.__new__(FormationLearner)
+    learner._priority, learner._stats = {}, {}
+    config = SimpleNamespace(margin=2.0, margin_gap=5.0)
+    loss = learner.compute_loss_for_module(module_id="follower", config=config, batch=batch, fwd_out=fwd)
+    rows = q.view(2, 4, 4)
+    margin = sum(large_margin_sets(rows[0, r].unsqueeze(0), accepted[0, r].unsqueeze(0), 5.0) for r in (0, 2))
+    taken = q.gather(1, batch["actions"].unsqueeze(1)).squeeze(1)
+    td = torch.nn.functional.smooth_l1_loss(taken, torch.zeros(2))
+    torch.testing.assert_close(loss, td + 2.0 * margin.squeeze())  # the step without a label adds no margin
+    expected = taken.abs() + 2.0 * torch.stack([margin.squeeze(), torch.tensor(0.0)])
+    np.testing.assert_allclose(learner._priority["follower"], expected.numpy(), rtol=1e-5)
 
 
 def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_leaders_row():

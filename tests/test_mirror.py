@@ -2,13 +2,15 @@
 1-2 the mirror of a state plays out as the mirror of its play, on screen and in rewards, and the teacher's
 labels of a mirrored state are the mirrored labels; the learner mirrors whole steps, nothing else."""
 
+import itertools
+
 import numpy as np
 import pytest
 
 import formation.env as fenv
 from formation.config import ConfigError, GameConfig
 from formation.game import BatchedGame
-from formation.game.mirror import MIRRORED_MOVE, mirror_scenario, mirror_steps, mirror_symmetric
+from formation.game.mirror import MIRRORED_MOVE, mirror_joint_masks, mirror_scenario, mirror_steps, mirror_symmetric
 from formation.learn.config import RunConfig, TrainSettings
 from formation.learn.teacher import Teacher
 
@@ -84,6 +86,8 @@ def test_teacher_labels_and_answers_of_a_mirrored_state_are_mirrored_off_the_mid
                     answer = teacher.answer(scenario, label, leader_move)
                     mirrored_answer = teacher.answer(mirror, mirrored_label, int(MIRRORED_MOVE[leader_move]))
                     assert mirrored_answer == (None if answer is None else tuple(MIRRORED_MOVE[list(answer)]))
+                accepted = np.array([teacher.accepted(scenario, label, first)])
+                assert teacher.accepted(mirror, mirrored_label, first) == mirror_joint_masks(accepted)[0]
                 compared += 1
             game.step(np.array([label]))
     assert compared >= 100
@@ -131,6 +135,20 @@ def test_a_mirrored_step_answers_the_mirrored_leader_move_with_the_mirrored_move
         before, after = answers[which][..., move], out["answers"][which][..., MIRRORED_MOVE[move]]
         assert (after[before < 0] == -1).all()
         assert (after[before >= 0] == MIRRORED_MOVE[before[before >= 0]]).all()
+
+
+def test_a_mirrored_step_accepts_the_mirrored_joint_actions():
+    sample = replay_sample()
+    sample["accepted"] = np.random.default_rng(2).integers(0, 1 << 16, 64)
+    which = np.arange(64) % 2 == 0
+    out = mirror_steps(sample, which)
+    assert (out["accepted"][~which] == sample["accepted"][~which]).all()
+    for leader, follower in itertools.product(range(4), repeat=2):  # (l, f) accepted <=> its mirror is, mirrored
+        before = sample["accepted"][which] >> (4 * leader + follower) & 1
+        after = out["accepted"][which] >> (4 * MIRRORED_MOVE[leader] + MIRRORED_MOVE[follower]) & 1
+        assert (before == after).all()
+    # e.g. forward-left for both (1, 1) becomes forward-right for both (2, 2)
+    assert mirror_joint_masks(np.array([1 << 5, 1 << 4])).tolist() == [1 << 10, 1 << 8]
 
 
 def test_the_learner_mirrors_about_half_of_each_batch_with_train_mirror():

@@ -3,7 +3,14 @@
 import numpy as np
 import torch
 
-from formation.learn.qnet import DuelingQNetwork, LeaderWindow, double_q_target, dueling, large_margin
+from formation.learn.qnet import (
+    DuelingQNetwork,
+    LeaderWindow,
+    double_q_target,
+    dueling,
+    large_margin,
+    large_margin_sets,
+)
 
 
 def test_dueling_aggregation_by_hand():
@@ -32,6 +39,20 @@ def test_large_margin_by_hand():
     assert torch.allclose(large_margin(q, labels, 5.0), torch.tensor([3.0 + 5.0, 3.0, 4.5]))
     # a label that leads by more than the gap costs nothing
     assert torch.allclose(large_margin(q, labels, 0.8), torch.tensor([3.8, 0.0, 0.3]))
+
+
+def test_large_margin_towards_a_set_compares_with_the_best_accepted_action():
+    q = torch.tensor([[1.0, 2.0, 3.0, 0.0], [1.0, 2.0, 3.0, 0.0], [1.0, 2.0, 3.0, 0.0]])
+    accepted = torch.tensor([[True, True, False, False], [False, True, True, False], [False, False, True, False]])
+    # row 1: action 2 (3, not accepted) plus the gap 5 against the best accepted (2): 6; row 2: the best
+    # accepted (3) leads action 0 (1) by 2, less than the gap: 5 - 2 = 3 remains; row 3: one accepted (3),
+    # action 1 (2) plus the gap: 4
+    assert torch.allclose(large_margin_sets(q, accepted, 5.0), torch.tensor([6.0, 3.0, 4.0]))
+    # one accepted action: the margin towards a label
+    assert torch.allclose(large_margin_sets(q, accepted[2:].expand(3, 4), 5.0),
+                          large_margin(q, torch.tensor([2, 2, 2]), 5.0))
+    # every action accepted: nothing to learn
+    assert (large_margin_sets(q, torch.ones(3, 4, dtype=torch.bool), 5.0) == 0).all()
 
 
 def test_network_takes_uint8_screens_and_grids():

@@ -403,3 +403,46 @@ def test_labels_of_a_batch_are_each_states_own_label_and_robust_first_steps_keep
         kept = {joint: sum(alone._opens(h, joint) for h in hypotheses)
                 for joint in itertools.product(range(4), repeat=2)}
         assert kept[label] == max(kept.values()) and min(kept.values()) < max(kept.values())
+
+
+def test_accepted_joint_actions_are_those_that_start_a_shortest_path_and_hold_the_label():
+    teacher = Teacher(SMALL, slack=200, order="lockstep", robust_first_step=True)
+    several = 0
+    for scenario, joint, best in labelled_states(teacher, 40):
+        mask = teacher.accepted(scenario, joint)
+        accepted = {(m // 4, m % 4) for m in range(16) if mask >> m & 1}
+        assert joint in accepted
+        # every accepted joint action leaves a path as short as the label's, and no other does
+        for other in itertools.product(range(4), repeat=2):
+            assert (other in accepted) == (steps_after(SMALL, scenario, other) == best), (scenario, other)
+        several += len(accepted) > 1
+        # on a first step the robust label stands alone: the screens do not show the motion yet
+        first = teacher.label(scenario, first_step=True)
+        assert teacher.accepted(scenario, first, first_step=True) == 1 << (4 * first[0] + first[1])
+    assert several > 10
+    with pytest.raises(ValueError, match="one follower"):
+        Teacher(GameConfig.from_setting(None, height=9, width=9, n_obstacles=1, n_followers=2), slack=6,
+                order="lockstep").accepted(scenarios(SMALL, [0])[0], (0, 0, 0))
+
+
+def test_rollout_actor_stores_the_accepted_joint_actions_of_each_labelled_state():
+    pytest.importorskip("ray")
+    from formation.learn.algorithm import build_algorithm_config
+    from formation.learn.config import RunConfig
+    from formation.learn.rollout_actor import RolloutActor
+
+    run = RunConfig.load("configs/smoke.yaml", {"train.follower_answers_leader": True,
+                                                "train.any_shortest_move": True})
+    actor = RolloutActor(config=build_algorithm_config(run))
+    game, teacher = actor.rollout.game, actor._teacher
+    game.steps[:] = 1
+    joints = actor._teacher_joints()
+    accepted = actor._accepted(joints)
+    for i in range(game.batch_size):
+        if joints[i, 0] < 0:
+            assert accepted[i] == 0
+        else:
+            assert accepted[i] == teacher.accepted(game.scenario(i), tuple(int(a) for a in joints[i]))
+    assert (joints[:, 0] >= 0).any()
+    chunk = actor.rollout.step(joints.clip(min=0), labels=joints, accepted=accepted)
+    assert (chunk.accepted[: game.batch_size] == accepted).all()

@@ -82,6 +82,23 @@ def test_answers_to_every_leader_move_reach_the_replay_and_the_learner_learns_fr
         algo.stop()
 
 
+def test_accepted_joint_actions_reach_the_replay_and_the_learner_learns_from_them(cluster):
+    run, algo = build(1, answer_every_leader_move=True, any_shortest_move=True, learning_starts=500)
+    try:
+        train_until(algo, 1500)
+        assert algo.counters["updates"] > 0  # the learner took the batches with the accepted moves
+        batch = ray.get(algo.replays[0].sample.remote(256, 1, 0.97))
+        labels, accepted = batch["labels"], batch["accepted"]
+        taught = np.flatnonzero(labels[:, 0] >= 0)
+        assert len(taught) and (accepted[labels[:, 0] < 0] == 0).all()
+        # the joint label is always accepted, and often other joint actions are too
+        label_bits = 1 << (4 * labels[taught, 0] + batch["answers"][taught, 1, labels[taught, 0]])
+        assert (accepted[taught] & label_bits == label_bits).all()
+        assert (accepted[taught] != label_bits).mean() > 0.3
+    finally:
+        algo.stop()
+
+
 def test_train_writes_a_checkpoint_and_resume_continues(cluster, tmp_path):
     from formation.train import train
 

@@ -42,7 +42,8 @@ def mirror_scenario(scenario: Scenario, config: GameConfig) -> Scenario:
 
 def mirror_steps(sample: dict[str, np.ndarray], which: np.ndarray) -> dict[str, np.ndarray]:
     """A replay sample (``obs`` and ``next_obs`` as (N, H, W, C), ``actions`` and ``labels`` as (N, agents),
-    optionally ``answers`` as (N, agents, moves); labels and answers -1 where none) with the steps ``which``
+    optionally ``answers`` as (N, agents, moves) and ``accepted`` as (N,) bit masks of joint actions of a leader
+    and one follower; labels and answers -1 where none) with the steps ``which``
     (N bools) seen in a mirror; the others, and the rewards, discounts and weights, as they were. A new
     dict; the arrays given are not written to."""
     out = dict(sample)
@@ -58,4 +59,15 @@ def mirror_steps(sample: dict[str, np.ndarray], which: np.ndarray) -> dict[str, 
             moves = moves[..., MIRRORED_MOVE]
         mirrored = np.where(moves >= 0, MIRRORED_MOVE[np.clip(moves, 0, None)], moves).astype(moves.dtype)
         out[key] = np.where(which.reshape(-1, *[1] * (moves.ndim - 1)), mirrored, sample[key])
+    if "accepted" in sample:
+        out["accepted"] = np.where(which, mirror_joint_masks(sample["accepted"]), sample["accepted"])
     return out
+
+
+def mirror_joint_masks(masks: np.ndarray) -> np.ndarray:
+    """Bit masks of joint actions (bit ``4 * leader's move + follower's move``) seen in a mirror: every
+    joint action's moves mirrored."""
+    moves = len(MOVES)
+    bits = (masks[:, None] >> np.arange(moves * moves)) & 1  # (N, 16): leader-major
+    mirrored = bits.reshape(-1, moves, moves)[:, MIRRORED_MOVE][:, :, MIRRORED_MOVE].reshape(-1, moves * moves)
+    return (mirrored << np.arange(moves * moves)).sum(1).astype(masks.dtype)

@@ -308,9 +308,9 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
             remote_worker_ids=runner_ids, local_env_runner=False)
         agents = module_of_agent(self.run)
         answering = [m for m in set(agents) if answers_leader(self.run, m)]
-        mirror, seed = self.run.train.mirror, self.run.train.seed
+        mirror, seed, any_shortest = self.run.train.mirror, self.run.train.seed, self.run.train.any_shortest_move
         self.learner_group.foreach_learner(
-            lambda learner: learner.set_replays(replays, agents, answering, mirror, seed))
+            lambda learner: learner.set_replays(replays, agents, answering, mirror, seed, any_shortest))
 
     def restore_env_runners(self, env_runner_group):
         restored = super().restore_env_runners(env_runner_group)

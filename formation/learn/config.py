@@ -90,6 +90,11 @@ class TrainSettings:
     # teacher's answer to every move the leader could make there (formation.learn.teacher.Teacher.answers), not
     # only to the one it made
     answer_every_leader_move: bool = False
+    # DAgger's margin accepts every move that starts a shortest path, not only the label's: the leader's
+    # margin is towards the best of its moves that start one, and an answering follower's, in each row, towards
+    # the best of its answers to that leader move that start one (formation.learn.qnet.large_margin_sets).
+    # Needs dagger, follower_answers_leader and one follower
+    any_shortest_move: bool = False
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True
     hidden: int = 256
@@ -143,7 +148,7 @@ class TrainSettings:
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
                      "tolerant_formation", "obstacle_forecast", "follower_answers_leader", "mirror",
-                     "answer_every_leader_move"):
+                     "answer_every_leader_move", "any_shortest_move"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:
@@ -161,6 +166,9 @@ class TrainSettings:
                               "allowed: teacher")
         if self.answer_every_leader_move and not (self.follower_answers_leader and self.dagger):
             raise ConfigError("train.answer_every_leader_move: true is not allowed without "
+                              "train.follower_answers_leader: true and train.dagger: true; allowed: false")
+        if self.any_shortest_move and not (self.follower_answers_leader and self.dagger):
+            raise ConfigError("train.any_shortest_move: true is not allowed without "
                               "train.follower_answers_leader: true and train.dagger: true; allowed: false")
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
@@ -251,6 +259,9 @@ class RunConfig:
                               "allowed: 0, or any with train.screen_cells: true or game.obs_type: grid")
         if self.train.mirror and (needs := mirror_symmetric(self.game)) is not None:
             raise ConfigError(f"train.mirror: true needs {needs}; allowed: false, or true on settings 1-2")
+        if self.train.any_shortest_move and self.game.n_followers != 1:
+            raise ConfigError(f"train.any_shortest_move: true needs game.n_followers: 1 (not "
+                              f"{self.game.n_followers}); allowed: false")
         if self.train.obstacle_forecast:
             if patches:
                 raise ConfigError("train.obstacle_forecast: true needs the screen read per cell; allowed: false, "
@@ -319,7 +330,8 @@ class RunConfig:
 LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("train", "screen_cells"): False,
                                           ("train", "obstacle_forecast"): False, ("train", "row_scan"): 0,
                                           ("train", "follower_answers_leader"): False, ("train", "mirror"): False,
-                                          ("train", "answer_every_leader_move"): False}
+                                          ("train", "answer_every_leader_move"): False,
+                                          ("train", "any_shortest_move"): False}
 
 
 def _read_yaml(path: str | Path) -> dict[str, Any]:

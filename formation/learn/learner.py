@@ -23,20 +23,24 @@ from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from formation.game.mirror import mirror_steps
 from formation.learn.module import PREPARED_NEXT_OBS, PREPARED_OBS
-from formation.learn.qnet import N_ACTIONS, double_q_target
-from formation.learn.qnet import large_margin as large_margin_loss
+from formation.learn.qnet import N_ACTIONS, double_q_target, large_margin_sets
 
 RETURNS, DISCOUNTS, LABELS, WEIGHTS = "n_step_returns", "n_step_discounts", "teacher_labels", "weights"
+ACCEPTED = "teacher_accepted"  # train.any_shortest_move: the moves the margin accepts, bools beside LABELS
 
 
 def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
-                   answering: frozenset[str] = frozenset()) -> dict[str, dict[str, np.ndarray]]:
+                   answering: frozenset[str] = frozenset(), any_shortest_move: bool = False
+                   ) -> dict[str, dict[str, np.ndarray]]:
     """Split a replay sample (all agents) into one batch per module; agents that share a module
     (followers with one policy) contribute one row each for every sampled step. A module in
     ``answering`` (it answers the leader) gets actions as pairs with the leader's move, ``4 * leader +
     own`` (its Q-values' index), and labels as one own move per move of the leader, (N, 4): the
     sample's ``answers`` where it has them, its label in the row of the move the leader made, -1 where
-    there is none."""
+    there is none. With ``any_shortest_move`` (one follower), each module also gets ``ACCEPTED``, the
+    shape of its labels and one more axis of 4 bools: every move of its own that the sample's
+    ``accepted`` joint actions hold (for the leader, with any follower move; for the follower, in
+    each row, with that move of the leader), and the label's move."""
     rows: dict[str, list[int]] = {}
     for agent, module in enumerate(module_of_agent):
         rows.setdefault(module, []).append(agent)
@@ -53,7 +57,24 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
                        Columns.ACTIONS: np.concatenate(actions),
                        RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
                        DISCOUNTS: shared["discounts"], LABELS: np.concatenate(labels), WEIGHTS: shared["weights"]}
+        if any_shortest_move:
+            out[module][ACCEPTED] = np.concatenate([_accepted_moves(sample["accepted"], a, label)
+                                                    for a, label in zip(agents, labels)])
     return out
+
+
+def _accepted_moves(accepted: np.ndarray, agent: int, labels: np.ndarray) -> np.ndarray:
+    """``agent``'s accepted moves, bools of the shape of its ``labels`` and one more axis of 4 (see
+    ``module_batches``): the leader's (agent 0) moves that start a shortest path with some follower move,
+    or the follower's (agent 1) moves that do with each leader move (labels (N, 4), one row each); and
+    each label's move."""
+    joint = ((accepted[:, None] >> np.arange(N_ACTIONS * N_ACTIONS)) & 1).astype(bool)
+    joint = joint.reshape(-1, N_ACTIONS, N_ACTIONS)  # (N, leader's move, follower's move)
+    moves = joint.any(2) if agent == 0 else joint
+    if moves.ndim != labels.ndim + 1:
+        raise ValueError(f"any_shortest_move: agent {agent}'s labels have shape {labels.shape}; "
+                         "the leader's must be (N,), an answering follower's (N, 4)")
+    return moves | ((labels[..., None] == np.arange(N_ACTIONS)) & (labels[..., None] >= 0))
 
 
 def _answer_rows(sample: dict[str, np.ndarray], agent: int, leader: np.ndarray) -> np.ndarray:
@@ -65,6 +86,19 @@ def _answer_rows(sample: dict[str, np.ndarray], agent: int, leader: np.ndarray) 
     taught = np.flatnonzero(label >= 0)
     rows[taught, leader[taught]] = label[taught]
     return rows
+
+
+def _margin_targets(batch: dict[str, Any], n_q: int) -> torch.Tensor:
+    """(N, rows, moves) bools: the moves each labelled row of a module batch accepts: ``ACCEPTED`` where the
+    batch has it, else the label's move alone (none where the label is -1). Rows: 1 (of ``n_q``, the module's
+    Q-values), or 4 for a module that answers the leader (one per move of the leader)."""
+    if ACCEPTED in batch:
+        accepted = batch[ACCEPTED].bool()
+    else:
+        labels = batch[LABELS].long()
+        moves = n_q if labels.dim() == 1 else N_ACTIONS
+        accepted = torch.nn.functional.one_hot(labels.clamp(min=0), moves).bool() & (labels >= 0)[..., None]
+    return accepted if accepted.dim() == 3 else accepted.unsqueeze(1)
 
 
 def _repeat(a: np.ndarray, copies: int) -> np.ndarray:
@@ -128,13 +162,15 @@ class FormationLearner(DQNTorchLearner):
                 batch[module_id][prepared] = x
 
     def set_replays(self, handles: list, module_of_agent: list[str], answering: list[str] = (), mirror: bool = False,
-                    seed: int = 0) -> bool:
-        """The replay shards to pull from, each agent's module, the modules that answer the leader, and
-        whether to see a random half of every batch in a mirror (``train.mirror``)."""
+                    seed: int = 0, any_shortest_move: bool = False) -> bool:
+        """The replay shards to pull from, each agent's module, the modules that answer the leader,
+        whether to see a random half of every batch in a mirror (``train.mirror``), and whether the margin
+        accepts every move that starts a shortest path (``train.any_shortest_move``)."""
         self._replays = list(handles)
         self._mirror = np.random.default_rng([seed, 7]) if mirror else None
         self._module_of_agent = list(module_of_agent)
         self._answering = frozenset(answering)
+        self._any_shortest_move = any_shortest_move
         self._prefetch = None
         self._turn = 0
         self._priority: dict[str, np.ndarray] = {}
@@ -160,19 +196,16 @@ class FormationLearner(DQNTorchLearner):
         loss = (batch[WEIGHTS] * torch.nn.functional.smooth_l1_loss(q_taken, y, reduction="none")).mean()
         priority = td.detach().abs()
         if config.margin > 0:
-            labels = batch[LABELS].long()
-            taught = labels >= 0
-            if labels.dim() == 2:  # a module that answers the leader: a label per move of the leader (its row)
-                taught_rows = taught
-                taught = taught_rows.any(1)
+            accepted = _margin_targets(batch, q.shape[1])  # (N, rows, moves): one row, or one per leader move
+            taught_rows = accepted.any(2)
+            taught = taught_rows.any(1)
             if taught.any():
-                # DQfD: J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), a_E the teacher's (planner's) action
-                labels = labels.clamp(min=0)
-                if labels.dim() == 2:  # one margin per labelled row, summed
-                    rows = large_margin_loss(q.reshape(-1, N_ACTIONS), labels.reshape(-1), config.margin_gap)
-                    large_margin = (rows.view(-1, N_ACTIONS) * taught_rows).sum(1)
-                else:
-                    large_margin = large_margin_loss(q, labels, config.margin_gap)
+                # DQfD: J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), a_E the teacher's (planner's) action; with
+                # several accepted, Q(s, a_E) is the best of theirs. A row with none accepts all: no loss
+                moves = accepted.shape[2]
+                rows = large_margin_sets(q.reshape(-1, moves), (accepted | ~taught_rows[..., None]).reshape(-1, moves),
+                                         config.margin_gap)
+                large_margin = (rows.view(len(q), -1) * taught_rows).sum(1)  # summed over labelled rows
                 loss = loss + config.margin * large_margin[taught].mean()
                 # prioritized replay also revisits the states where the module disagrees with the teacher
                 priority = priority + config.margin * (large_margin.detach() * taught)
@@ -203,7 +236,8 @@ class FormationLearner(DQNTorchLearner):
                 break
             self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma, min_records)
             incarnation = seen[index] = sample.pop("incarnation")
-            batches = module_batches(self.augment(sample), self._module_of_agent, self._answering)
+            batches = module_batches(self.augment(sample), self._module_of_agent, self._answering,
+                                     self._any_shortest_move)
             n = len(sample["ids"])
             batch = MultiAgentBatch({m: SampleBatch(b) for m, b in batches.items()}, env_steps=n)
             # DQNLearner syncs target networks by this count: ours counts learner updates.

@@ -75,9 +75,15 @@ def team_q_values(q: dict[str, np.ndarray], modules: list[str], leader_moves: np
 def large_margin(q: torch.Tensor, labels: torch.Tensor, gap: float) -> torch.Tensor:
     """DQfD's J_E(Q) = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), l = ``gap`` for a != a_E, 0 for a_E
     (Hester et al. 2018, eq. 2), per row; ``labels`` are the teacher's actions a_E (all >= 0)."""
-    a_e = labels.long().unsqueeze(1)
-    margins = torch.full_like(q, gap).scatter(1, a_e, 0.0)
-    return (q + margins).max(1).values - q.gather(1, a_e).squeeze(1)
+    return large_margin_sets(q, torch.nn.functional.one_hot(labels.long(), q.shape[1]).bool(), gap)
+
+
+def large_margin_sets(q: torch.Tensor, accepted: torch.Tensor, gap: float) -> torch.Tensor:
+    """``large_margin`` towards a set of teacher's actions: max_a [Q(s, a) + l(a)] - max_{a in E} Q(s, a),
+    l = ``gap`` for a not in E, 0 in E; ``accepted`` (bool, the shape of ``q``) marks E, at least one
+    action per row. With one action in E it is ``large_margin``."""
+    best_accepted = q.masked_fill(~accepted, float("-inf")).max(1).values
+    return (q + gap * (~accepted)).max(1).values - best_accepted
 
 
 def leader_entry(obs: torch.Tensor, frame_channels: int, screens: bool) -> torch.Tensor:

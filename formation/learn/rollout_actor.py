@@ -135,6 +135,15 @@ class RolloutActor(EnvRunner, Checkpointable):
                 joints[i] = joint
         return joints
 
+    def _accepted(self, joints: np.ndarray) -> np.ndarray:
+        """``train.any_shortest_move``: the joint actions that start a shortest path from every game's present
+        state (``Teacher.accepted``, bit masks), 0 where the teacher has no label."""
+        game, accepted = self.rollout.game, np.zeros(self.rollout.batch_size, np.uint16)
+        for i in np.flatnonzero(joints[:, 0] >= 0):
+            accepted[i] = self._teacher.accepted(game.scenario(i), tuple(int(a) for a in joints[i]),
+                                                 first_step=bool(game.steps[i] == 0))
+        return accepted
+
     def _labels(self, joints: np.ndarray, greedy: np.ndarray, actions: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray | None]:
         """The labels to learn from, and the answers (``Chunk``) or None: the teacher's ``joints``; with
@@ -200,10 +209,12 @@ class RolloutActor(EnvRunner, Checkpointable):
                     actions[i] = np.where(joints[i] >= 0, joints[i], actions[i])
                 elif self._plans[i]:
                     actions[i] = labels[i] = self._plans[i].pop(0)
-            answers = None
+            answers = accepted = None
             if run.train.dagger:
                 labels, answers = self._labels(joints, greedy, actions)
-            chunks.append(rollout.step(actions, labels=labels, answers=answers))
+            if run.train.any_shortest_move:
+                accepted = self._accepted(joints)
+            chunks.append(rollout.step(actions, labels=labels, answers=answers, accepted=accepted))
             if not run.train.dagger:
                 for i in np.flatnonzero(rollout.game.steps[: self._demo_games] == 0):
                     self._plan(int(i))
