@@ -4,6 +4,8 @@
     .venv/bin/python experiments/imitation_probe.py collect --states 50000 --seed 12 --out /tmp/probe_12.npz
     .venv/bin/python experiments/imitation_probe.py fit /tmp/probe_1[12].npz --net flat [--iterations 8000]
     .venv/bin/python experiments/imitation_probe.py fit /tmp/probe_1[12].npz --net window --forecast [--row-scan 16]
+    .venv/bin/python experiments/imitation_probe.py fit /tmp/probe_1[12].npz --net window --forecast --agents 1 \
+        --loss margin --leader-labels sets
 
 ``collect`` plays setting-1 games (grid observations, 2 stacked frames) that follow the teacher's
 joint label except, with probability ``--explore`` per step, a random joint move (so states off the
@@ -11,7 +13,10 @@ teacher's path are met too, as DAgger meets them), and keeps every labelled stat
 one network per agent with cross-entropy on the labels of the first 80% of the games and prints
 the per-step agreement with the labels on the last 20%: the imitation accuracy a network can reach
 with unlimited updates, which the RL runs' greedy agreement (experiments/teacher_agreement.py)
-can be set against.
+can be set against. ``collect`` also keeps every state's joint actions that start a shortest path;
+``fit --leader-labels sets`` lets the leader learn any of its moves among them (``train.any_shortest_move``),
+and every fit reports how often the leader's move is one of them. ``--loss margin``: DQfD's large margin,
+as the learner uses, instead of cross-entropy.
 """
 
 from __future__ import annotations

@@ -57,7 +57,7 @@ def test_with_any_shortest_move_each_module_accepts_its_moves_of_the_accepted_jo
               "answers": np.array([[[-1] * 4, [0, 1, 2, -1]], [[-1] * 4, [1, 1, 3, 3]], [[-1] * 4, [-1] * 4]]),
               "accepted": np.array([bits((0, 0), (0, 1), (2, 1)), bits((0, 1)), 0]),
               "weights": np.ones(3, np.float32)}
-    batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}), any_shortest_move=True)
+    batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}), any_shortest_move="team")
     leader, follower = batches["leader"][ACCEPTED], batches["follower"][ACCEPTED]
     assert leader.shape == (3, 4) and follower.shape == (3, 4, 4)
     # the leader: forward and forward-right start a shortest path in the first step, forward alone in the
@@ -69,6 +69,9 @@ def test_with_any_shortest_move_each_module_accepts_its_moves_of_the_accepted_jo
     assert follower[1].tolist() == [[False, True, False, False], [False, True, False, False],
                                     [False, False, False, True], [False, False, False, True]]
     assert not follower[2].any()
+    # "leader": the follower learns its labels alone (no ACCEPTED: its margin is towards the label)
+    batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}), any_shortest_move="leader")
+    assert (batches["leader"][ACCEPTED] == leader).all() and ACCEPTED not in batches["follower"]
     assert ACCEPTED not in module_batches(sample, ["leader", "follower"], frozenset({"follower"}))["leader"]
 
 

@@ -432,7 +432,7 @@ def test_rollout_actor_stores_the_accepted_joint_actions_of_each_labelled_state(
     from formation.learn.rollout_actor import RolloutActor
 
     run = RunConfig.load("configs/smoke.yaml", {"train.follower_answers_leader": True,
-                                                "train.any_shortest_move": True})
+                                                "train.any_shortest_move": "team"})
     actor = RolloutActor(config=build_algorithm_config(run))
     game, teacher = actor.rollout.game, actor._teacher
     game.steps[:] = 1

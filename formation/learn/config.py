@@ -25,6 +25,7 @@ from formation.game.mirror import mirror_symmetric
 from formation.learn.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
+ANY_SHORTEST_MOVE = ("none", "leader", "team")  # train.any_shortest_move: whose margin accepts every such move
 EXPLORATIONS = ("independent", "joint")
 LABEL_ORDERS = ("planner", "lockstep", "toward", "safe", "widest")
 FOLLOWER_LABELS = ("teacher", "response")
@@ -90,11 +91,12 @@ class TrainSettings:
     # teacher's answer to every move the leader could make there (formation.learn.teacher.Teacher.answers), not
     # only to the one it made
     answer_every_leader_move: bool = False
-    # DAgger's margin accepts every move that starts a shortest path, not only the label's: the leader's
-    # margin is towards the best of its moves that start one, and an answering follower's, in each row, towards
-    # the best of its answers to that leader move that start one (formation.learn.qnet.large_margin_sets).
-    # Needs dagger, follower_answers_leader and one follower
-    any_shortest_move: bool = False
+    # DAgger's margin accepts every move that starts a shortest path, not only the label's
+    # (formation.learn.qnet.large_margin_sets): "leader", the leader's margin is towards the best of its moves
+    # that start one with some follower move, and the follower still learns the teacher's answers; "team", the
+    # answering follower's too, in each row towards the best of its moves that start one with that leader move;
+    # "none", the label's move alone. Needs dagger, follower_answers_leader and one follower
+    any_shortest_move: str = "none"
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True
     hidden: int = 256
@@ -148,7 +150,7 @@ class TrainSettings:
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
                      "tolerant_formation", "obstacle_forecast", "follower_answers_leader", "mirror",
-                     "answer_every_leader_move", "any_shortest_move"):
+                     "answer_every_leader_move"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:
@@ -167,9 +169,12 @@ class TrainSettings:
         if self.answer_every_leader_move and not (self.follower_answers_leader and self.dagger):
             raise ConfigError("train.answer_every_leader_move: true is not allowed without "
                               "train.follower_answers_leader: true and train.dagger: true; allowed: false")
-        if self.any_shortest_move and not (self.follower_answers_leader and self.dagger):
-            raise ConfigError("train.any_shortest_move: true is not allowed without "
-                              "train.follower_answers_leader: true and train.dagger: true; allowed: false")
+        if self.any_shortest_move not in ANY_SHORTEST_MOVE:
+            raise ConfigError(f"train.any_shortest_move: {self.any_shortest_move!r} is not allowed; "
+                              f"allowed: {', '.join(ANY_SHORTEST_MOVE)}")
+        if self.any_shortest_move != "none" and not (self.follower_answers_leader and self.dagger):
+            raise ConfigError(f"train.any_shortest_move: {self.any_shortest_move} is not allowed without "
+                              "train.follower_answers_leader: true and train.dagger: true; allowed: none")
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
         if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0
@@ -259,9 +264,9 @@ class RunConfig:
                               "allowed: 0, or any with train.screen_cells: true or game.obs_type: grid")
         if self.train.mirror and (needs := mirror_symmetric(self.game)) is not None:
             raise ConfigError(f"train.mirror: true needs {needs}; allowed: false, or true on settings 1-2")
-        if self.train.any_shortest_move and self.game.n_followers != 1:
-            raise ConfigError(f"train.any_shortest_move: true needs game.n_followers: 1 (not "
-                              f"{self.game.n_followers}); allowed: false")
+        if self.train.any_shortest_move != "none" and self.game.n_followers != 1:
+            raise ConfigError(f"train.any_shortest_move: {self.train.any_shortest_move} needs game.n_followers: 1 "
+                              f"(not {self.game.n_followers}); allowed: none")
         if self.train.obstacle_forecast:
             if patches:
                 raise ConfigError("train.obstacle_forecast: true needs the screen read per cell; allowed: false, "
@@ -331,7 +336,7 @@ LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("tr
                                           ("train", "obstacle_forecast"): False, ("train", "row_scan"): 0,
                                           ("train", "follower_answers_leader"): False, ("train", "mirror"): False,
                                           ("train", "answer_every_leader_move"): False,
-                                          ("train", "any_shortest_move"): False}
+                                          ("train", "any_shortest_move"): "none"}
 
 
 def _read_yaml(path: str | Path) -> dict[str, Any]:

@@ -30,17 +30,18 @@ ACCEPTED = "teacher_accepted"  # train.any_shortest_move: the moves the margin a
 
 
 def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
-                   answering: frozenset[str] = frozenset(), any_shortest_move: bool = False
+                   answering: frozenset[str] = frozenset(), any_shortest_move: str = "none"
                    ) -> dict[str, dict[str, np.ndarray]]:
     """Split a replay sample (all agents) into one batch per module; agents that share a module
     (followers with one policy) contribute one row each for every sampled step. A module in
     ``answering`` (it answers the leader) gets actions as pairs with the leader's move, ``4 * leader +
     own`` (its Q-values' index), and labels as one own move per move of the leader, (N, 4): the
     sample's ``answers`` where it has them, its label in the row of the move the leader made, -1 where
-    there is none. With ``any_shortest_move`` (one follower), each module also gets ``ACCEPTED``, the
-    shape of its labels and one more axis of 4 bools: every move of its own that the sample's
+    there is none. With ``any_shortest_move`` "team" (one follower), each module also gets ``ACCEPTED``,
+    the shape of its labels and one more axis of 4 bools: every move of its own that the sample's
     ``accepted`` joint actions hold (for the leader, with any follower move; for the follower, in
-    each row, with that move of the leader), and the label's move."""
+    each row, with that move of the leader), and the label's move; with "leader", the leader's
+    module alone."""
     rows: dict[str, list[int]] = {}
     for agent, module in enumerate(module_of_agent):
         rows.setdefault(module, []).append(agent)
@@ -57,7 +58,7 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
                        Columns.ACTIONS: np.concatenate(actions),
                        RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
                        DISCOUNTS: shared["discounts"], LABELS: np.concatenate(labels), WEIGHTS: shared["weights"]}
-        if any_shortest_move:
+        if any_shortest_move == "team" or (any_shortest_move == "leader" and agents == [0]):
             out[module][ACCEPTED] = np.concatenate([_accepted_moves(sample["accepted"], a, label)
                                                     for a, label in zip(agents, labels)])
     return out
@@ -162,7 +163,7 @@ class FormationLearner(DQNTorchLearner):
                 batch[module_id][prepared] = x
 
     def set_replays(self, handles: list, module_of_agent: list[str], answering: list[str] = (), mirror: bool = False,
-                    seed: int = 0, any_shortest_move: bool = False) -> bool:
+                    seed: int = 0, any_shortest_move: str = "none") -> bool:
         """The replay shards to pull from, each agent's module, the modules that answer the leader,
         whether to see a random half of every batch in a mirror (``train.mirror``), and whether the margin
         accepts every move that starts a shortest path (``train.any_shortest_move``)."""

@@ -212,7 +212,7 @@ class RolloutActor(EnvRunner, Checkpointable):
             answers = accepted = None
             if run.train.dagger:
                 labels, answers = self._labels(joints, greedy, actions)
-            if run.train.any_shortest_move:
+            if run.train.any_shortest_move != "none":
                 accepted = self._accepted(joints)
             chunks.append(rollout.step(actions, labels=labels, answers=answers, accepted=accepted))
             if not run.train.dagger:
