@@ -7,9 +7,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from formation.config import ConfigError, GameConfig, RunFailed
+from formation.learn.config import yaml_value
 
 CHECKPOINT_HELP = "a run folder (or its storage URI), its checkpoint/ folder, or a `formation export` folder"
 
@@ -21,7 +20,7 @@ def parse_overrides(pairs: list[str]) -> dict[str, Any]:
         key, sep, value = pair.partition("=")
         if not sep or not key:
             raise ConfigError(f"--set: {pair!r} is not allowed; allowed: key=value")
-        out[key.strip()] = yaml.safe_load(value)
+        out[key.strip()] = yaml_value(value)
     return out
 
 

@@ -32,6 +32,19 @@ def test_yaml_and_dotted_overrides(tmp_path):
     assert config.resources.games_per_actor == 4
 
 
+def test_numbers_in_exponent_notation_are_numbers_in_a_file_and_in_overrides(tmp_path):
+    from formation.cli import parse_overrides
+
+    path = tmp_path / "c.yaml"
+    path.write_text("train:\n  lr: 3e-4\n  margin_gap: 5E+0\n")
+    config = RunConfig.load(path, parse_overrides(["train.lr_end=1e-5", "train.label_order=lockstep"]))
+    assert (config.train.lr, config.train.margin_gap, config.train.lr_end) == (3e-4, 5.0, 1e-5)
+    assert config.train.label_order == "lockstep"
+    # still a one-line error where a whole number is needed
+    assert one_line_error(path=path, overrides=parse_overrides(["train.total_env_steps=1e5"])).startswith(
+        "train.total_env_steps")
+
+
 @pytest.mark.parametrize("values, names", [
     ({"trian": {}}, "trian"),
     ({"train": {"gama": 0.9}}, "train.gama"),

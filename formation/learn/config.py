@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -339,12 +340,26 @@ LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("tr
                                           ("train", "any_shortest_move"): "none"}
 
 
+class _YamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, but ``3e-4`` and ``1e5`` are numbers (YAML 1.2), not strings (YAML 1.1)."""
+
+
+_YamlLoader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?(?:\d+\.?\d*|\.\d+)[eE][-+]?\d+$"),
+                                  list("-+.0123456789"))
+
+
+def yaml_value(text: str) -> Any:
+    """The value of a YAML document (a config file, or one ``--set`` value), numbers in exponent
+    notation included."""
+    return yaml.load(text, Loader=_YamlLoader)
+
+
 def _read_yaml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config: no such file {str(path)!r}")
     try:
-        values = yaml.safe_load(path.read_text()) or {}
+        values = yaml_value(path.read_text()) or {}
     except yaml.YAMLError as err:
         line = getattr(getattr(err, "problem_mark", None), "line", None)
         where = f" at line {line + 1}" if line is not None else ""
