@@ -70,8 +70,9 @@ def test_with_any_shortest_move_each_module_accepts_its_moves_of_the_accepted_jo
                                     [False, False, False, True], [False, False, False, True]]
     assert not follower[2].any()
     # "leader": the follower learns its labels alone (no ACCEPTED: its margin is towards the label)
-    batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}), any_shortest_move="leader")
-    assert (batches["leader"][ACCEPTED] == leader).all() and ACCEPTED not in batches["follower"]
+    for which in ("leader", "toward"):  # "toward" narrows the set in the teacher, not here
+        batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}), any_shortest_move=which)
+        assert (batches["leader"][ACCEPTED] == leader).all() and ACCEPTED not in batches["follower"]
     assert ACCEPTED not in module_batches(sample, ["leader", "follower"], frozenset({"follower"}))["leader"]
 
 

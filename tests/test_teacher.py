@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from formation.config import GameConfig
-from formation.game import BatchedGame
+from formation.game import MOVES, BatchedGame
 from formation.learn.teacher import Teacher, lockstep_order
 from formation.planner import shortest_first_moves, shortest_path, shortest_path_counts
 
@@ -407,7 +407,7 @@ def test_labels_of_a_batch_are_each_states_own_label_and_robust_first_steps_keep
 
 def test_accepted_joint_actions_are_those_that_start_a_shortest_path_and_hold_the_label():
     teacher = Teacher(SMALL, slack=200, order="lockstep", robust_first_step=True)
-    several = 0
+    several = narrower = 0
     for scenario, joint, best in labelled_states(teacher, 40):
         mask = teacher.accepted(scenario, joint)
         accepted = {(m // 4, m % 4) for m in range(16) if mask >> m & 1}
@@ -416,23 +416,33 @@ def test_accepted_joint_actions_are_those_that_start_a_shortest_path_and_hold_th
         for other in itertools.product(range(4), repeat=2):
             assert (other in accepted) == (steps_after(SMALL, scenario, other) == best), (scenario, other)
         several += len(accepted) > 1
+        # "toward": of those, the label and the ones whose leader move keeps or closes the gap to the
+        # destination's column
+        toward_mask = teacher.accepted(scenario, joint, toward=True)
+        gap = abs(scenario.leader[1] - SMALL.destination[1])
+        for m in range(16):
+            leader_col = min(max(scenario.leader[1] + int(MOVES[m // 4, 1]), 0), SMALL.width - 1)
+            kept = mask >> m & 1 and (abs(leader_col - SMALL.destination[1]) <= gap or (m // 4, m % 4) == joint)
+            assert (toward_mask >> m & 1) == kept
+        narrower += toward_mask != mask
         # on a first step the robust label stands alone: the screens do not show the motion yet
         first = teacher.label(scenario, first_step=True)
         assert teacher.accepted(scenario, first, first_step=True) == 1 << (4 * first[0] + first[1])
-    assert several > 10
+    assert several > 10 and narrower > 3
     with pytest.raises(ValueError, match="one follower"):
         Teacher(GameConfig.from_setting(None, height=9, width=9, n_obstacles=1, n_followers=2), slack=6,
                 order="lockstep").accepted(scenarios(SMALL, [0])[0], (0, 0, 0))
 
 
-def test_rollout_actor_stores_the_accepted_joint_actions_of_each_labelled_state():
+@pytest.mark.parametrize("which", ["team", "toward"])
+def test_rollout_actor_stores_the_accepted_joint_actions_of_each_labelled_state(which):
     pytest.importorskip("ray")
     from formation.learn.algorithm import build_algorithm_config
     from formation.learn.config import RunConfig
     from formation.learn.rollout_actor import RolloutActor
 
     run = RunConfig.load("configs/smoke.yaml", {"train.follower_answers_leader": True,
-                                                "train.any_shortest_move": "team"})
+                                                "train.any_shortest_move": which})
     actor = RolloutActor(config=build_algorithm_config(run))
     game, teacher = actor.rollout.game, actor._teacher
     game.steps[:] = 1
@@ -442,7 +452,8 @@ def test_rollout_actor_stores_the_accepted_joint_actions_of_each_labelled_state(
         if joints[i, 0] < 0:
             assert accepted[i] == 0
         else:
-            assert accepted[i] == teacher.accepted(game.scenario(i), tuple(int(a) for a in joints[i]))
+            assert accepted[i] == teacher.accepted(game.scenario(i), tuple(int(a) for a in joints[i]),
+                                                   toward=which == "toward")
     assert (joints[:, 0] >= 0).any()
     chunk = actor.rollout.step(joints.clip(min=0), labels=joints, accepted=accepted)
     assert (chunk.accepted[: game.batch_size] == accepted).all()

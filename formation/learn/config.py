@@ -26,7 +26,7 @@ from formation.game.mirror import mirror_symmetric
 from formation.learn.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
-ANY_SHORTEST_MOVE = ("none", "leader", "team")  # train.any_shortest_move: whose margin accepts every such move
+ANY_SHORTEST_MOVE = ("none", "leader", "toward", "team")  # train.any_shortest_move: whose margin accepts more
 EXPLORATIONS = ("independent", "joint")
 LABEL_ORDERS = ("planner", "lockstep", "toward", "safe", "widest")
 FOLLOWER_LABELS = ("teacher", "response")
@@ -96,7 +96,9 @@ class TrainSettings:
     # (formation.learn.qnet.large_margin_sets): "leader", the leader's margin is towards the best of its moves
     # that start one with some follower move, and the follower still learns the teacher's answers; "team", the
     # answering follower's too, in each row towards the best of its moves that start one with that leader move;
-    # "none", the label's move alone. Needs dagger, follower_answers_leader and one follower
+    # "toward", as "leader" but only the leader's moves that keep or close its distance to the destination's
+    # column, and the label's; "none", the label's move alone. Needs dagger, follower_answers_leader and one
+    # follower
     any_shortest_move: str = "none"
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True

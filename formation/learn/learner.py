@@ -40,8 +40,8 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
     there is none. With ``any_shortest_move`` "team" (one follower), each module also gets ``ACCEPTED``,
     the shape of its labels and one more axis of 4 bools: every move of its own that the sample's
     ``accepted`` joint actions hold (for the leader, with any follower move; for the follower, in
-    each row, with that move of the leader), and the label's move; with "leader", the leader's
-    module alone."""
+    each row, with that move of the leader), and the label's move; with "leader" or "toward", the
+    leader's module alone."""
     rows: dict[str, list[int]] = {}
     for agent, module in enumerate(module_of_agent):
         rows.setdefault(module, []).append(agent)
@@ -58,7 +58,7 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
                        Columns.ACTIONS: np.concatenate(actions),
                        RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
                        DISCOUNTS: shared["discounts"], LABELS: np.concatenate(labels), WEIGHTS: shared["weights"]}
-        if any_shortest_move == "team" or (any_shortest_move == "leader" and agents == [0]):
+        if any_shortest_move == "team" or (any_shortest_move in ("leader", "toward") and agents == [0]):
             out[module][ACCEPTED] = np.concatenate([_accepted_moves(sample["accepted"], a, label)
                                                     for a, label in zip(agents, labels)])
     return out

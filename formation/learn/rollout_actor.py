@@ -137,11 +137,13 @@ class RolloutActor(EnvRunner, Checkpointable):
 
     def _accepted(self, joints: np.ndarray) -> np.ndarray:
         """``train.any_shortest_move``: the joint actions that start a shortest path from every game's present
-        state (``Teacher.accepted``, bit masks), 0 where the teacher has no label."""
+        state (``Teacher.accepted``, bit masks; with "toward", those that do not take the leader away from the
+        destination's column), 0 where the teacher has no label."""
         game, accepted = self.rollout.game, np.zeros(self.rollout.batch_size, np.uint16)
+        toward = self.run.train.any_shortest_move == "toward"
         for i in np.flatnonzero(joints[:, 0] >= 0):
             accepted[i] = self._teacher.accepted(game.scenario(i), tuple(int(a) for a in joints[i]),
-                                                 first_step=bool(game.steps[i] == 0))
+                                                 first_step=bool(game.steps[i] == 0), toward=toward)
         return accepted
 
     def _labels(self, joints: np.ndarray, greedy: np.ndarray, actions: np.ndarray

@@ -105,17 +105,22 @@ class Teacher:
         (``train.answer_every_leader_move``)."""
         return [self.answer(scenario, joint, move) for move in range(len(MOVES))]
 
-    def accepted(self, scenario: Scenario, joint: tuple[int, ...], first_step: bool = False) -> int:
+    def accepted(self, scenario: Scenario, joint: tuple[int, ...], first_step: bool = False,
+                 toward: bool = False) -> int:
         """The joint actions a learner may take for ``joint``, the state's label (``train.any_shortest_move``),
         as a bit mask: bit ``4 * leader's move + follower's move`` (one follower) of every joint action that
         starts a shortest path; only the label's on a first step with ``robust_first_step``, and where the
-        order does not label with a shortest path's start."""
+        order does not label with a shortest path's start. ``toward``: besides the label, only those whose
+        leader move does not take the leader farther from the destination's column."""
         if self.config.n_followers != 1:
             raise ValueError(f"Teacher.accepted: one follower only, not {self.config.n_followers}")
-        starts = {joint}
+        starts = set()
         if self.order in SHORTEST_PATH_ORDERS and not (first_step and self.robust_first_step):
-            starts |= self._starts(scenario) or set()
-        return sum(1 << (len(MOVES) * leader + follower) for leader, follower in starts)
+            starts = self._starts(scenario) or set()
+        if toward:
+            column, now = self.config.destination[1], scenario.leader[1]
+            starts = {j for j in starts if abs(self._landing(scenario.leader, j[0])[1] - column) <= abs(now - column)}
+        return sum(1 << (len(MOVES) * leader + follower) for leader, follower in starts | {joint})
 
     def _shortest_with(self, scenario: Scenario, leader_move: int) -> tuple[int, ...] | None:
         """The first joint action in the order with ``leader_move`` that starts a shortest path; None if none does."""
