@@ -104,6 +104,34 @@ def test_the_margin_with_accepted_moves_compares_with_the_best_accepted_move_in_
     np.testing.assert_allclose(learner._priority["follower"], expected.numpy(), rtol=1e-5)
 
 
+def test_a_label_preference_adds_a_weighted_margin_towards_the_label_to_the_one_towards_the_accepted_moves():
+    from types import SimpleNamespace
+
+    import torch
+
+    from formation.learn.learner import WEIGHTS, FormationLearner
+    from formation.learn.qnet import large_margin, large_margin_sets
+
+    q = torch.tensor([[1.0, 0.0, 3.0, -2.0], [0.0, 0.0, 0.0, 0.0]])
+    accepted = torch.tensor([[True, False, True, False], [False] * 4])
+    batch = {"actions": torch.tensor([0, 0]), "n_step_returns": torch.zeros(2), "n_step_discounts": torch.zeros(2),
+             "teacher_labels": torch.tensor([0, -1]), ACCEPTED: accepted, WEIGHTS: torch.ones(2)}
+    fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(2, 4), "qf_target_next_preds": torch.zeros(2, 4)}
+    learner = FormationLearner.__new__(FormationLearner)
+    learner._priority, learner._stats = {}, {}
+    losses = {}
+    for preference in (0.0, 0.25):
+        config = SimpleNamespace(margin=1.0, margin_gap=5.0, label_preference=preference)
+        losses[preference] = learner.compute_loss_for_module(module_id="leader", config=config, batch=batch,
+                                                             fwd_out=fwd)
+    # towards the set: action 1 (0) + 5 against the best accepted (3): 2; towards the label (0): 3 + 5 - 1 = 7
+    assert large_margin_sets(q[:1], accepted[:1], 5.0).item() == 2.0
+    assert large_margin(q[:1], torch.tensor([0]), 5.0).item() == 7.0
+    td = torch.nn.functional.smooth_l1_loss(q[:, 0], torch.zeros(2))
+    torch.testing.assert_close(losses[0.0], td + 2.0)  # only the labelled step has a margin
+    torch.testing.assert_close(losses[0.25], td + 2.0 + 0.25 * 7.0)
+
+
 def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_leaders_row():
     from types import SimpleNamespace
 

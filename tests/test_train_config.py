@@ -75,6 +75,8 @@ def test_numbers_in_exponent_notation_are_numbers_in_a_file_and_in_overrides(tmp
     ({"train": {"any_shortest_move": "leader", "follower_answers_leader": False}}, "train.any_shortest_move"),
     ({"train": {"any_shortest_move": "team", "dagger": False}}, "train.any_shortest_move"),
     ({"train": {"any_shortest_move": "toward", "follower_answers_leader": False}}, "train.any_shortest_move"),
+    ({"train": {"label_preference": 0.1}}, "train.label_preference"),
+    ({"train": {"label_preference": -1, "any_shortest_move": "leader"}}, "train.label_preference"),
     ({"game": {"n_followers": 2}, "train": {"any_shortest_move": "leader"}}, "train.any_shortest_move"),
     ({"train": {"row_scan": 8, "screen_cells": False, "obstacle_forecast": False}}, "train.row_scan"),
     ({"train": {"margin_gap": -1}}, "train.margin_gap"),

@@ -83,7 +83,8 @@ def test_answers_to_every_leader_move_reach_the_replay_and_the_learner_learns_fr
 
 
 def test_accepted_joint_actions_reach_the_replay_and_the_learner_learns_from_them(cluster):
-    run, algo = build(1, answer_every_leader_move=True, any_shortest_move="team", learning_starts=500)
+    run, algo = build(1, answer_every_leader_move=True, any_shortest_move="team", label_preference=0.1,
+                      learning_starts=500)
     try:
         train_until(algo, 1500)
         assert algo.counters["updates"] > 0  # the learner took the batches with the accepted moves

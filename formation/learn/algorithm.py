@@ -85,6 +85,10 @@ class FormationDQNConfig(DQNConfig):
         return self.run.train.margin_gap
 
     @property
+    def label_preference(self) -> float:
+        return self.run.train.label_preference
+
+    @property
     def prioritized(self) -> bool:
         return self.run.train.prioritized
 

@@ -100,6 +100,9 @@ class TrainSettings:
     # column, and the label's; "none", the label's move alone. Needs dagger, follower_answers_leader and one
     # follower
     any_shortest_move: str = "none"
+    # with any_shortest_move, the weight of a second DQfD margin towards the label itself, beside the one towards
+    # the accepted moves: the label breaks the ties among them (0: none)
+    label_preference: float = 0.0
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True
     hidden: int = 256
@@ -141,6 +144,7 @@ class TrainSettings:
         _number(self, "exploring_starts", 0.0, 1.0)
         _number(self, "margin", 0.0, math.inf)
         _number(self, "margin_gap", 0.0, math.inf)
+        _number(self, "label_preference", 0.0, math.inf)
         _number(self, "grad_clip", 0.0, math.inf, low_open=True)
         if self.potential not in POTENTIALS:
             raise ConfigError(f"train.potential: {self.potential!r} is not allowed; allowed: {', '.join(POTENTIALS)}")
@@ -178,6 +182,9 @@ class TrainSettings:
         if self.any_shortest_move != "none" and not (self.follower_answers_leader and self.dagger):
             raise ConfigError(f"train.any_shortest_move: {self.any_shortest_move} is not allowed without "
                               "train.follower_answers_leader: true and train.dagger: true; allowed: none")
+        if self.label_preference > 0 and self.any_shortest_move == "none":
+            raise ConfigError(f"train.label_preference: {self.label_preference} is not allowed with "
+                              "train.any_shortest_move: none (the label is all the margin accepts); allowed: 0")
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
         if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0
@@ -339,7 +346,7 @@ LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("tr
                                           ("train", "obstacle_forecast"): False, ("train", "row_scan"): 0,
                                           ("train", "follower_answers_leader"): False, ("train", "mirror"): False,
                                           ("train", "answer_every_leader_move"): False,
-                                          ("train", "any_shortest_move"): "none"}
+                                          ("train", "any_shortest_move"): "none", ("train", "label_preference"): 0.0}
 
 
 class _YamlLoader(yaml.SafeLoader):

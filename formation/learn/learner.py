@@ -89,6 +89,16 @@ def _answer_rows(sample: dict[str, np.ndarray], agent: int, leader: np.ndarray) 
     return rows
 
 
+def _margin(q: torch.Tensor, accepted: torch.Tensor, gap: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """DQfD's J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), a_E the teacher's (planner's) action, per step of a
+    module batch, summed over its labelled rows; with several ``accepted`` moves (N, rows, moves), Q(s, a_E)
+    is the best of theirs. Also whether each step has a labelled row. A row with none accepts all: no loss."""
+    taught_rows = accepted.any(2)
+    moves = accepted.shape[2]
+    rows = large_margin_sets(q.reshape(-1, moves), (accepted | ~taught_rows[..., None]).reshape(-1, moves), gap)
+    return (rows.view(len(q), -1) * taught_rows).sum(1), taught_rows.any(1)
+
+
 def _margin_targets(batch: dict[str, Any], n_q: int) -> torch.Tensor:
     """(N, rows, moves) bools: the moves each labelled row of a module batch accepts: ``ACCEPTED`` where the
     batch has it, else the label's move alone (none where the label is -1). Rows: 1 (of ``n_q``, the module's
@@ -197,16 +207,13 @@ class FormationLearner(DQNTorchLearner):
         loss = (batch[WEIGHTS] * torch.nn.functional.smooth_l1_loss(q_taken, y, reduction="none")).mean()
         priority = td.detach().abs()
         if config.margin > 0:
-            accepted = _margin_targets(batch, q.shape[1])  # (N, rows, moves): one row, or one per leader move
-            taught_rows = accepted.any(2)
-            taught = taught_rows.any(1)
+            large_margin, taught = _margin(q, _margin_targets(batch, q.shape[1]), config.margin_gap)
+            preference = getattr(config, "label_preference", 0.0)
+            if preference > 0 and ACCEPTED in batch:  # a second margin, towards the label itself
+                labels_only = {LABELS: batch[LABELS]}
+                large_margin = large_margin + preference * _margin(q, _margin_targets(labels_only, q.shape[1]),
+                                                                   config.margin_gap)[0]
             if taught.any():
-                # DQfD: J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), a_E the teacher's (planner's) action; with
-                # several accepted, Q(s, a_E) is the best of theirs. A row with none accepts all: no loss
-                moves = accepted.shape[2]
-                rows = large_margin_sets(q.reshape(-1, moves), (accepted | ~taught_rows[..., None]).reshape(-1, moves),
-                                         config.margin_gap)
-                large_margin = (rows.view(len(q), -1) * taught_rows).sum(1)  # summed over labelled rows
                 loss = loss + config.margin * large_margin[taught].mean()
                 # prioritized replay also revisits the states where the module disagrees with the teacher
                 priority = priority + config.margin * (large_margin.detach() * taught)
