@@ -46,6 +46,23 @@ def test_a_follower_that_answers_the_leader_gets_pairs_with_the_leaders_move():
     assert batches["leader"][LABELS].tolist() == [-1, 3, 0]  # the leader's stay its own
 
 
+def margin_loss(module: str, q, batch: dict, **config):
+    """The learner's loss for one module batch whose Q-values are ``q`` (next-state Q-values 0), and its
+    priorities; ``config``: margin, margin_gap and the like."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from formation.learn.learner import FormationLearner
+
+    n, actions = q.shape
+    fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(n, actions), "qf_target_next_preds": torch.zeros(n, actions)}
+    learner = FormationLearner.__new__(FormationLearner)
+    learner._priority, learner._stats = {}, {}
+    loss = learner.compute_loss_for_module(module_id=module, config=SimpleNamespace(**config), batch=batch, fwd_out=fwd)
+    return loss, learner._priority[module]
+
+
 def bits(*joints):
     return sum(1 << (4 * leader + follower) for leader, follower in joints)
 
@@ -77,11 +94,10 @@ def test_with_any_shortest_move_each_module_accepts_its_moves_of_the_accepted_jo
 
 
 def test_the_margin_with_accepted_moves_compares_with_the_best_accepted_move_in_each_row():
-    from types import SimpleNamespace
 
     import torch
 
-    from formation.learn.learner import WEIGHTS, FormationLearner
+    from formation.learn.learner import WEIGHTS
     from formation.learn.qnet import large_margin_sets
 
     q = torch.randn(2, 16, generator=torch.Generator().manual_seed(1))
@@ -90,40 +106,29 @@ def test_the_margin_with_accepted_moves_compares_with_the_best_accepted_move_in_
     accepted[0, 2, 3] = True
     batch = {"actions": torch.tensor([1, 9]), "n_step_returns": torch.zeros(2), "n_step_discounts": torch.zeros(2),
              "teacher_labels": torch.tensor([[0, -1, 3, -1], [-1] * 4]), ACCEPTED: accepted, WEIGHTS: torch.ones(2)}
-    fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(2, 16), "qf_target_next_preds": torch.zeros(2, 16)}
-    learner = FormationLearner.__new__(FormationLearner)
-    learner._priority, learner._stats = {}, {}
-    config = SimpleNamespace(margin=2.0, margin_gap=5.0)
-    loss = learner.compute_loss_for_module(module_id="follower", config=config, batch=batch, fwd_out=fwd)
+    loss, priority = margin_loss("follower", q, batch, margin=2.0, margin_gap=5.0)
     rows = q.view(2, 4, 4)
     margin = sum(large_margin_sets(rows[0, r].unsqueeze(0), accepted[0, r].unsqueeze(0), 5.0) for r in (0, 2))
     taken = q.gather(1, batch["actions"].unsqueeze(1)).squeeze(1)
     td = torch.nn.functional.smooth_l1_loss(taken, torch.zeros(2))
     torch.testing.assert_close(loss, td + 2.0 * margin.squeeze())  # the step without a label adds no margin
     expected = taken.abs() + 2.0 * torch.stack([margin.squeeze(), torch.tensor(0.0)])
-    np.testing.assert_allclose(learner._priority["follower"], expected.numpy(), rtol=1e-5)
+    np.testing.assert_allclose(priority, expected.numpy(), rtol=1e-5)
 
 
 def test_a_label_preference_adds_a_weighted_margin_towards_the_label_to_the_one_towards_the_accepted_moves():
-    from types import SimpleNamespace
 
     import torch
 
-    from formation.learn.learner import WEIGHTS, FormationLearner
+    from formation.learn.learner import WEIGHTS
     from formation.learn.qnet import large_margin, large_margin_sets
 
     q = torch.tensor([[1.0, 0.0, 3.0, -2.0], [0.0, 0.0, 0.0, 0.0]])
     accepted = torch.tensor([[True, False, True, False], [False] * 4])
     batch = {"actions": torch.tensor([0, 0]), "n_step_returns": torch.zeros(2), "n_step_discounts": torch.zeros(2),
              "teacher_labels": torch.tensor([0, -1]), ACCEPTED: accepted, WEIGHTS: torch.ones(2)}
-    fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(2, 4), "qf_target_next_preds": torch.zeros(2, 4)}
-    learner = FormationLearner.__new__(FormationLearner)
-    learner._priority, learner._stats = {}, {}
-    losses = {}
-    for preference in (0.0, 0.25):
-        config = SimpleNamespace(margin=1.0, margin_gap=5.0, label_preference=preference)
-        losses[preference] = learner.compute_loss_for_module(module_id="leader", config=config, batch=batch,
-                                                             fwd_out=fwd)
+    losses = {preference: margin_loss("leader", q, batch, margin=1.0, margin_gap=5.0, label_preference=preference)[0]
+              for preference in (0.0, 0.25)}
     # towards the set: action 1 (0) + 5 against the best accepted (3): 2; towards the label (0): 3 + 5 - 1 = 7
     assert large_margin_sets(q[:1], accepted[:1], 5.0).item() == 2.0
     assert large_margin(q[:1], torch.tensor([0]), 5.0).item() == 7.0
@@ -133,11 +138,10 @@ def test_a_label_preference_adds_a_weighted_margin_towards_the_label_to_the_one_
 
 
 def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_leaders_row():
-    from types import SimpleNamespace
 
     import torch
 
-    from formation.learn.learner import WEIGHTS, FormationLearner
+    from formation.learn.learner import WEIGHTS
     from formation.learn.qnet import large_margin
 
     q = torch.zeros(1, 16)
@@ -146,11 +150,7 @@ def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_
     labelled = 4 * 2 + 1
     batch = {"actions": torch.tensor([labelled]), "n_step_returns": torch.zeros(1), "n_step_discounts": torch.zeros(1),
              "teacher_labels": torch.tensor([[-1, -1, 1, -1]]), WEIGHTS: torch.ones(1)}
-    fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(1, 16), "qf_target_next_preds": torch.zeros(1, 16)}
-    learner = FormationLearner.__new__(FormationLearner)
-    learner._priority, learner._stats = {}, {}
-    config = SimpleNamespace(margin=1.0, margin_gap=5.0)
-    loss = learner.compute_loss_for_module(module_id="follower", config=config, batch=batch, fwd_out=fwd)
+    loss, priority = margin_loss("follower", q, batch, margin=1.0, margin_gap=5.0)
     td = torch.nn.functional.smooth_l1_loss(torch.tensor([3.0]), torch.zeros(1))
     row = q[0, 8:12].unsqueeze(0)
     expected = td + large_margin(row, torch.tensor([1]), 5.0).mean()
@@ -162,22 +162,17 @@ def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_
 def test_the_margin_of_every_labelled_row_counts_once_and_unlabelled_steps_not_at_all():
     """With answers to every move of the leader, a step's margin is the sum over its labelled rows,
     each row's label compared within that row; a step with no label adds nothing but its TD loss."""
-    from types import SimpleNamespace
 
     import torch
 
-    from formation.learn.learner import WEIGHTS, FormationLearner
+    from formation.learn.learner import WEIGHTS
     from formation.learn.qnet import large_margin
 
     q = torch.randn(3, 16, generator=torch.Generator().manual_seed(0))
     labels = torch.tensor([[1, 0, -1, 3], [-1, -1, -1, -1], [-1, 2, -1, -1]])
     batch = {"actions": torch.tensor([5, 0, 6]), "n_step_returns": torch.zeros(3), "n_step_discounts": torch.zeros(3),
              "teacher_labels": labels, WEIGHTS: torch.ones(3)}
-    fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(3, 16), "qf_target_next_preds": torch.zeros(3, 16)}
-    learner = FormationLearner.__new__(FormationLearner)
-    learner._priority, learner._stats = {}, {}
-    config = SimpleNamespace(margin=2.0, margin_gap=5.0)
-    loss = learner.compute_loss_for_module(module_id="follower", config=config, batch=batch, fwd_out=fwd)
+    loss, priority = margin_loss("follower", q, batch, margin=2.0, margin_gap=5.0)
     rows = q.view(3, 4, 4)
     first = sum(large_margin(rows[0, r].unsqueeze(0), torch.tensor([labels[0, r]]), 5.0) for r in (0, 1, 3))
     third = large_margin(rows[2, 1].unsqueeze(0), torch.tensor([2]), 5.0)
@@ -186,7 +181,7 @@ def test_the_margin_of_every_labelled_row_counts_once_and_unlabelled_steps_not_a
     # priorities: the TD error plus the weighted margin, the unlabelled step its TD error alone
     td_abs = q.gather(1, batch["actions"].unsqueeze(1)).squeeze(1).abs()
     expected = td_abs + 2.0 * torch.stack([first.squeeze(), torch.tensor(0.0), third.squeeze()])
-    np.testing.assert_allclose(learner._priority["follower"], expected.numpy(), rtol=1e-5)
+    np.testing.assert_allclose(priority, expected.numpy(), rtol=1e-5)
 
 
 def test_threaded_module_updates_equal_rllibs_serial_update(monkeypatch):

@@ -45,6 +45,16 @@ def labelled_states(teacher, n):
             yield scenario, joint, steps_after(SMALL, scenario, joint)
 
 
+def rollout_actor(overrides: dict):
+    """A rollout actor (no Ray cluster needed) of the smoke config with ``overrides``."""
+    pytest.importorskip("ray")
+    from formation.learn.algorithm import build_algorithm_config
+    from formation.learn.config import RunConfig
+    from formation.learn.rollout_actor import RolloutActor
+
+    return RolloutActor(config=build_algorithm_config(RunConfig.load("configs/smoke.yaml", overrides)))
+
+
 def order_at(scenario):
     """The teacher's lockstep order for a state of SMALL (sideways towards the destination first)."""
     return lockstep_order(2, 2 if scenario.leader[1] < SMALL.destination[1] else 1)
@@ -244,14 +254,8 @@ def test_response_labels_answer_the_leaders_own_move_with_a_shortest_path_when_o
 
 @pytest.mark.parametrize("follower_labels", ["teacher", "response"])
 def test_rollout_actor_learns_from_response_labels_but_demonstrations_play_the_teachers(follower_labels):
-    pytest.importorskip("ray")
-    from formation.learn.algorithm import build_algorithm_config
-    from formation.learn.config import RunConfig
-    from formation.learn.rollout_actor import RolloutActor
-
-    run = RunConfig.load("configs/smoke.yaml", {"train.follower_labels": follower_labels,
+    actor = rollout_actor({"train.follower_labels": follower_labels,
                                                 "train.follower_answers_leader": False})
-    actor = RolloutActor(config=build_algorithm_config(run))
     game, teacher = actor.rollout.game, actor._teacher
     scenarios = [game.scenario(i) for i in range(game.batch_size)]
     first = [teacher.label(s, first_step=True) for s in scenarios]
@@ -303,14 +307,8 @@ def ended(scenario, joint) -> bool:
 
 
 def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_it_plays():
-    pytest.importorskip("ray")
-    from formation.learn.algorithm import build_algorithm_config
-    from formation.learn.config import RunConfig
-    from formation.learn.rollout_actor import RolloutActor
-
-    run = RunConfig.load("configs/smoke.yaml", {"train.follower_answers_leader": True, "train.epsilon_start": 0.5,
+    actor = rollout_actor({"train.follower_answers_leader": True, "train.epsilon_start": 0.5,
                                                 "train.epsilon_end": 0.5})
-    actor = RolloutActor(config=build_algorithm_config(run))
     game, teacher = actor.rollout.game, actor._teacher
     obs = actor.rollout.observations
     greedy, actions = actor._actions(obs)
@@ -340,14 +338,8 @@ def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_
 
 
 def test_with_answer_every_leader_move_a_follower_learns_its_answer_to_each_move_the_leader_could_make():
-    pytest.importorskip("ray")
-    from formation.learn.algorithm import build_algorithm_config
-    from formation.learn.config import RunConfig
-    from formation.learn.rollout_actor import RolloutActor
-
-    run = RunConfig.load("configs/smoke.yaml", {"train.follower_answers_leader": True,
+    actor = rollout_actor({"train.follower_answers_leader": True,
                                                 "train.answer_every_leader_move": True})
-    actor = RolloutActor(config=build_algorithm_config(run))
     game, teacher = actor.rollout.game, actor._teacher
     game.steps[:] = 1
     joints = actor._teacher_joints()
@@ -436,14 +428,8 @@ def test_accepted_joint_actions_are_those_that_start_a_shortest_path_and_hold_th
 
 @pytest.mark.parametrize("which", ["team", "toward"])
 def test_rollout_actor_stores_the_accepted_joint_actions_of_each_labelled_state(which):
-    pytest.importorskip("ray")
-    from formation.learn.algorithm import build_algorithm_config
-    from formation.learn.config import RunConfig
-    from formation.learn.rollout_actor import RolloutActor
-
-    run = RunConfig.load("configs/smoke.yaml", {"train.follower_answers_leader": True,
+    actor = rollout_actor({"train.follower_answers_leader": True,
                                                 "train.any_shortest_move": which})
-    actor = RolloutActor(config=build_algorithm_config(run))
     game, teacher = actor.rollout.game, actor._teacher
     game.steps[:] = 1
     joints = actor._teacher_joints()
