@@ -48,7 +48,7 @@ def test_a_follower_that_answers_the_leader_gets_pairs_with_the_leaders_move():
 
 def margin_loss(module: str, q, batch: dict, **config):
     """The learner's loss for one module batch whose Q-values are ``q`` (next-state Q-values 0), and its
-    priorities; ``config``: margin, margin_gap and the like."""
+    priorities; ``config``: margin, margin_gap and the like (label_preference 0 unless given)."""
     from types import SimpleNamespace
 
     import torch
@@ -59,7 +59,8 @@ def margin_loss(module: str, q, batch: dict, **config):
     fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(n, actions), "qf_target_next_preds": torch.zeros(n, actions)}
     learner = FormationLearner.__new__(FormationLearner)
     learner._priority, learner._stats = {}, {}
-    loss = learner.compute_loss_for_module(module_id=module, config=SimpleNamespace(**config), batch=batch, fwd_out=fwd)
+    config = SimpleNamespace(**{"label_preference": 0.0, **config})
+    loss = learner.compute_loss_for_module(module_id=module, config=config, batch=batch, fwd_out=fwd)
     return loss, learner._priority[module]
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from formation.config import GameConfig
-from formation.game.core import MOVES
+from formation.game.core import MOVES, joint_mask_bits
 from formation.game.render import cell_pixel_bounds
 from formation.game.scenario import Scenario
 
@@ -67,7 +67,5 @@ def mirror_steps(sample: dict[str, np.ndarray], which: np.ndarray) -> dict[str, 
 def mirror_joint_masks(masks: np.ndarray) -> np.ndarray:
     """Bit masks of joint actions (bit ``4 * leader's move + follower's move``) seen in a mirror: every
     joint action's moves mirrored."""
-    moves = len(MOVES)
-    bits = (masks[:, None] >> np.arange(moves * moves)) & 1  # (N, 16): leader-major
-    mirrored = bits.reshape(-1, moves, moves)[:, MIRRORED_MOVE][:, :, MIRRORED_MOVE].reshape(-1, moves * moves)
-    return (mirrored << np.arange(moves * moves)).sum(1).astype(masks.dtype)
+    mirrored = joint_mask_bits(masks)[:, MIRRORED_MOVE][:, :, MIRRORED_MOVE].reshape(len(masks), -1)
+    return (mirrored.astype(np.int64) << np.arange(mirrored.shape[1])).sum(1).astype(masks.dtype)

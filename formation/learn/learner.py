@@ -21,6 +21,7 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
+from formation.game.core import joint_mask_bits
 from formation.game.mirror import mirror_steps
 from formation.learn.module import PREPARED_NEXT_OBS, PREPARED_OBS
 from formation.learn.qnet import N_ACTIONS, double_q_target, large_margin_sets
@@ -69,8 +70,7 @@ def _accepted_moves(accepted: np.ndarray, agent: int, labels: np.ndarray) -> np.
     ``module_batches``): the leader's (agent 0) moves that start a shortest path with some follower move,
     or the follower's (agent 1) moves that do with each leader move (labels (N, 4), one row each); and
     each label's move."""
-    joint = ((accepted[:, None] >> np.arange(N_ACTIONS * N_ACTIONS)) & 1).astype(bool)
-    joint = joint.reshape(-1, N_ACTIONS, N_ACTIONS)  # (N, leader's move, follower's move)
+    joint = joint_mask_bits(accepted)  # (N, leader's move, follower's move)
     moves = joint.any(2) if agent == 0 else joint
     if moves.ndim != labels.ndim + 1:
         raise ValueError(f"any_shortest_move: agent {agent}'s labels have shape {labels.shape}; "
@@ -99,16 +99,18 @@ def _margin(q: torch.Tensor, accepted: torch.Tensor, gap: float) -> tuple[torch.
     return (rows.view(len(q), -1) * taught_rows).sum(1), taught_rows.any(1)
 
 
-def _margin_targets(batch: dict[str, Any], n_q: int) -> torch.Tensor:
-    """(N, rows, moves) bools: the moves each labelled row of a module batch accepts: ``ACCEPTED`` where the
-    batch has it, else the label's move alone (none where the label is -1). Rows: 1 (of ``n_q``, the module's
-    Q-values), or 4 for a module that answers the leader (one per move of the leader)."""
-    if ACCEPTED in batch:
-        accepted = batch[ACCEPTED].bool()
-    else:
-        labels = batch[LABELS].long()
-        moves = n_q if labels.dim() == 1 else N_ACTIONS
-        accepted = torch.nn.functional.one_hot(labels.clamp(min=0), moves).bool() & (labels >= 0)[..., None]
+def _label_moves(labels: torch.Tensor, n_q: int) -> torch.Tensor:
+    """(N, rows, moves) bools: each labelled row's label move (none where the label is -1). Rows: 1 (of
+    ``n_q``, the module's Q-values), or 4 for a module that answers the leader (one per move of the leader)."""
+    labels = labels.long()
+    moves = n_q if labels.dim() == 1 else N_ACTIONS
+    accepted = torch.nn.functional.one_hot(labels.clamp(min=0), moves).bool() & (labels >= 0)[..., None]
+    return accepted if accepted.dim() == 3 else accepted.unsqueeze(1)
+
+
+def _accepted_rows(accepted: torch.Tensor) -> torch.Tensor:
+    """A module batch's ``ACCEPTED`` as (N, rows, moves) bools."""
+    accepted = accepted.bool()
     return accepted if accepted.dim() == 3 else accepted.unsqueeze(1)
 
 
@@ -207,12 +209,13 @@ class FormationLearner(DQNTorchLearner):
         loss = (batch[WEIGHTS] * torch.nn.functional.smooth_l1_loss(q_taken, y, reduction="none")).mean()
         priority = td.detach().abs()
         if config.margin > 0:
-            large_margin, taught = _margin(q, _margin_targets(batch, q.shape[1]), config.margin_gap)
-            preference = getattr(config, "label_preference", 0.0)
-            if preference > 0 and ACCEPTED in batch:  # a second margin, towards the label itself
-                labels_only = {LABELS: batch[LABELS]}
-                large_margin = large_margin + preference * _margin(q, _margin_targets(labels_only, q.shape[1]),
-                                                                   config.margin_gap)[0]
+            labelled = _label_moves(batch[LABELS], q.shape[1])
+            if ACCEPTED not in batch:
+                large_margin, taught = _margin(q, labelled, config.margin_gap)
+            else:  # every accepted move; with a label preference, a second margin towards the label itself
+                large_margin, taught = _margin(q, _accepted_rows(batch[ACCEPTED]), config.margin_gap)
+                if config.label_preference > 0:
+                    large_margin = large_margin + config.label_preference * _margin(q, labelled, config.margin_gap)[0]
             if taught.any():
                 loss = loss + config.margin * large_margin[taught].mean()
                 # prioritized replay also revisits the states where the module disagrees with the teacher

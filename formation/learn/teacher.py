@@ -16,6 +16,7 @@ import numpy as np
 
 from formation.config import GameConfig, formation_broken_by
 from formation.game import MOVES, BatchedGame, Scenario
+from formation.game.core import joint_mask
 from formation.planner import lower_bound, paths_exist, shortest_first_moves_many, shortest_path, shortest_path_counts
 
 # robust first-step labels try every velocity of this many obstacles, those nearest the leader's row;
@@ -120,7 +121,7 @@ class Teacher:
         if toward:
             column, now = self.config.destination[1], scenario.leader[1]
             starts = {j for j in starts if abs(self._landing(scenario.leader, j[0])[1] - column) <= abs(now - column)}
-        return sum(1 << (len(MOVES) * leader + follower) for leader, follower in starts | {joint})
+        return joint_mask(starts | {joint})
 
     def _shortest_with(self, scenario: Scenario, leader_move: int) -> tuple[int, ...] | None:
         """The first joint action in the order with ``leader_move`` that starts a shortest path; None if none does."""
