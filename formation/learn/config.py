@@ -64,6 +64,11 @@ class TrainSettings:
     # so that it also learns states its own play seldom reaches (the top row beside the destination).
     # Evaluation always starts from the spec's places
     exploring_starts: float = 0.0
+    # failure restarts: the fraction of training episodes that start from the state a few steps before the end of
+    # a recent training episode that ended in a collision or a formation break (formation.learn.rollout), so
+    # that the learner sees the states it fails in again and again, with the teacher's labels. Evaluation
+    # always starts from the spec's places
+    failure_restarts: float = 0.0
     margin: float = 5.0  # DQfD large-margin loss weight towards the teacher's actions (labels)
     margin_gap: float = 5.0  # DQfD's l(a_E, a): how far above every other action the teacher's Q must stand
     dagger: bool = True  # label every visited state with the teacher's joint action (DAgger)
@@ -142,6 +147,7 @@ class TrainSettings:
         _number(self, "shaping", 0.0, math.inf)
         _number(self, "demonstrations", 0.0, 1.0)
         _number(self, "exploring_starts", 0.0, 1.0)
+        _number(self, "failure_restarts", 0.0, 1.0)
         _number(self, "margin", 0.0, math.inf)
         _number(self, "margin_gap", 0.0, math.inf)
         _number(self, "label_preference", 0.0, math.inf)

@@ -93,7 +93,7 @@ class RolloutActor(EnvRunner, Checkpointable):
             else None
         self.rollout = GameRollout(run.game, games, seed=t.seed * 10_007 + index, stream_offset=index * games,
                                    potential=potential, shaping=t.shaping, gamma=t.gamma,
-                                   exploring_starts=t.exploring_starts)
+                                   exploring_starts=t.exploring_starts, failure_restarts=t.failure_restarts)
         self._rng = np.random.default_rng([t.seed, index])  # exploration
         self._demo_games = int(round(run.train.demonstrations * games))
         self._plans: dict[int, list] = {}
