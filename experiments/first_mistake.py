@@ -13,10 +13,12 @@ The first joint move of an episode that starts no shortest path is blamed on
   cause: this counts states the planner finds hopeless from the start).
 Prints, per outcome, how many episodes had their first departure blamed on whom; whether a
 successful path was still left after that departure ("yes", a longer one), none was ("no") or the
-move itself ended the episode ("ends there"); and whether the leader's move
-there was the default teacher's label ("label", on a first step the robust one) or another move
-("other"). ``--show OUTCOME`` also lists each episode that ended so: the step of its first
-departure, the joint move made there and the teacher's label, and the step it ended at.
+move itself ended the episode ("ends there"); and whether the leader's move there was the default
+teacher's label ("label", on a first step the robust one) or another move ("other"). Then how far, at
+the follower's first departures, its Q-value for the move it made stood above its best move that starts
+a shortest path with the leader's (one follower). ``--show OUTCOME`` also lists each episode that ended
+so: the step of its first departure, the joint move made there and the teacher's label, and the step it
+ended at.
 """
 
 from __future__ import annotations
@@ -50,6 +52,12 @@ def main() -> None:
     first: dict[int, tuple[str, str, str]] = {}  # episode -> (who, a path left after?, leader's move)
     where: dict[int, tuple[int, tuple, tuple | None]] = {}  # episode -> (step, joint move, label) of that move
     moves = collections.Counter()
+    follower_gaps: list[float] = []  # at the follower's first departures: Q of the move made - best Q on a path
+    q_now: dict[str, np.ndarray] = {}
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        q_now["q"] = policy.q_batch(obs)  # (N, agents, 4): the follower's row of the leader's greedy move
+        return q_now["q"].argmax(axis=-1)
 
     def watch(game, actions: np.ndarray, live: np.ndarray) -> None:
         for i in np.flatnonzero(live):
@@ -67,6 +75,9 @@ def main() -> None:
             if joint in starts:
                 continue
             who = "follower" if any(s[0] == joint[0] for s in starts) else "leader"
+            if who == "follower" and len(joint) == 2:
+                q = q_now["q"][i, 1]
+                follower_gaps.append(float(q[joint[1]] - max(q[s[1]] for s in starts if s[0] == joint[0])))
             after = game.scenario(i)  # the state the joint move leads to, played on a copy
             probe = type(game)(config, batch_size=1)
             probe.reset()
@@ -79,7 +90,7 @@ def main() -> None:
             first[i] = (who, left, "label" if label is not None and label[0] == joint[0] else "other")
             where[i] = (int(game.steps[i]), joint, label)
 
-    played = play_greedy(config, policy.act_batch, args.episodes, args.seed, watch=watch)
+    played = play_greedy(config, act, args.episodes, args.seed, watch=watch)
     outcome = {i: ("success" if played["success"][i] else "leader collision" if played["leader_collided"][i]
                    else "follower collision" if played["follower_collided"][i]
                    else "formation break" if played["broken"][i] else "time-out") for i in range(args.episodes)}
@@ -91,6 +102,10 @@ def main() -> None:
     print(f"{'outcome':<20} {'first off':<10} {'path left after':<16} {'leader moved':<13} {'episodes':>8}")
     for (end, who, left, leader), n in sorted(table.items()):
         print(f"{end:<20} {who:<10} {left:<16} {leader:<13} {n:>8}")
+    if follower_gaps:
+        low, mid, high = np.quantile(follower_gaps, [0.25, 0.5, 0.75])
+        print(f"at the follower's {len(follower_gaps)} first departures, its Q-value for the move made stood "
+              f"{mid:.1f} (quartiles {low:.1f}, {high:.1f}) above its best move on a shortest path")
     for i, end in outcome.items():
         if end == args.show:
             step, joint, label = where.get(i, (None, None, None))
