@@ -66,9 +66,13 @@ def test_rollouts_start_that_share_of_episodes_from_exploring_starts_and_show_th
     assert 16 <= sum(moved) <= 48
     rng = np.random.default_rng(0)
     restarts = moved_restarts = 0
+    started = {i: "exploring" if moved[i] else "spec" for i in range(64)}  # where each game's episode started
     for _ in range(40):
         rollout.step(rng.integers(0, 4, (64, 2)))
         restarted = np.flatnonzero(rollout.game.steps == 0)
+        for i, episode in zip(restarted.tolist(), rollout.pop_episodes()):  # its statistics say so
+            assert episode["start"] == started[i]
+            started[i] = "exploring" if rollout.game.scenario(i).leader not in at_spec else "spec"
         restarts += len(restarted)
         moved_restarts += sum(rollout.game.scenario(i).leader not in at_spec for i in restarted)
         # what the agents see is the state they are in: the first stacks of a fresh render of the same states

@@ -13,8 +13,9 @@ LOW, HIGH = FAILURE_STEPS_BACK
 
 
 def play(rollout: GameRollout, steps: int, seed: int = 0, actions=None):
-    """Play ``steps`` random (or the given) joint actions; after each, yield the games it restarted and the
-    states 2..8 steps before the end of every episode that failed so far (restarts included)."""
+    """Play ``steps`` random (or the given) joint actions; after each, yield the games it restarted, the
+    states 2..8 steps before the end of every episode that failed so far (restarts included) and the
+    statistics of the episodes that ended (one per restarted game, in the same order)."""
     rng = np.random.default_rng(seed)
     n = rollout.batch_size
     history: list[list] = [[rollout.game.scenario(i)] for i in range(n)]  # each game's states this episode
@@ -28,7 +29,7 @@ def play(rollout: GameRollout, steps: int, seed: int = 0, actions=None):
         for i, episode in zip(restarted.tolist(), episodes):
             if not episode["success"] and not episode["truncated"]:  # history[i][-1]: 1 step before the end
                 candidates.update(history[i][-HIGH:len(history[i]) - LOW + 1])
-        yield restarted, set(candidates)
+        yield restarted, set(candidates), episodes
         for i in range(n):
             history[i] = [rollout.game.scenario(i)] if i in restarted else history[i] + [rollout.game.scenario(i)]
 
@@ -37,9 +38,12 @@ def test_failures_restart_from_a_state_two_to_eight_steps_before_their_end_and_s
     config = GameConfig.from_setting(2, obs_type="grid", frame_stack=2)
     rollout = GameRollout(config, 1, seed=3, failure_restarts=1.0)
     from_failures = 0
-    for restarted, candidates in play(rollout, 400):
-        for i in restarted.tolist():
+    expected_start = "spec"
+    for restarted, candidates, episodes in play(rollout, 400):
+        for i, episode in zip(restarted.tolist(), episodes):
+            assert episode["start"] == expected_start  # the statistics say where the episode started
             scenario = rollout.game.scenario(i)
+            expected_start = "failure" if candidates else "spec"
             if candidates:  # every restart after a failure was seen comes from one
                 assert scenario in candidates
                 from_failures += 1
@@ -56,7 +60,7 @@ def test_that_share_of_restarts_come_from_failures():
     spec.reset(seed=0)
     spec_place = spec.scenario(0).leader
     restarts = from_failures = 0
-    for step, (restarted, _) in enumerate(play(rollout, 200)):
+    for step, (restarted, _, _) in enumerate(play(rollout, 200)):
         if step < 40:  # until the pool has failures in it
             continue
         for i in restarted.tolist():
@@ -73,8 +77,9 @@ def test_time_outs_and_successes_are_not_restarted_from():
     start = rollout.game.scenario(0)
     stand = np.full((8, 2), 3)
     restarts = 0
-    for restarted, _ in play(rollout, 20, actions=stand):
+    for restarted, _, episodes in play(rollout, 20, actions=stand):
         restarts += len(restarted)
+        assert all(e["truncated"] and e["start"] == "spec" for e in episodes)
         assert all(rollout.game.scenario(i) == start for i in restarted)
     assert restarts == 8 * 5
     assert not rollout._failures

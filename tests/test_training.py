@@ -100,6 +100,19 @@ def test_accepted_joint_actions_reach_the_replay_and_the_learner_learns_from_the
         algo.stop()
 
 
+def test_failure_restarts_reach_the_rollout_actors_and_show_in_the_metrics(cluster):
+    run, algo = build(1, failure_restarts=0.5, exploring_starts=0.5, learning_starts=500)
+    try:
+        result = {}
+        while algo.counters["env_steps"] < 2000:
+            result = algo.train()
+        # half the restarts come from failures once there are some, half of the others are exploring starts
+        explore = result["explore"]
+        assert 0.3 < explore["start_failure"] < 0.6 and 0.15 < explore["start_exploring"] < 0.4, explore
+    finally:
+        algo.stop()
+
+
 def test_train_writes_a_checkpoint_and_resume_continues(cluster, tmp_path):
     from formation.train import train
 

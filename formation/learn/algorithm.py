@@ -41,6 +41,7 @@ from formation.learn.learner import FormationLearner
 from formation.learn.module import DuelingQModule
 from formation.learn.qnet import q_values_of, team_q_values
 from formation.learn.replay_actor import ReplayActor
+from formation.learn.rollout import STARTS
 from formation.learn.rollout_actor import RolloutActor, answers_leader, module_of_agent, spaces_of
 
 
@@ -402,6 +403,8 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
             for key in ("success", "reached", "collided", "broken", "truncated"):
                 m.log_value(("explore", key), float(e[key]), window=500)
             m.log_value(("explore", "episode_steps"), e["steps"], window=500)
+            for start in STARTS[1:]:  # the share of training episodes that started elsewhere than the spec's places
+                m.log_value(("explore", f"start_{start}"), float(e["start"] == start), window=500)
             for name, value in zip(self.run.game.agent_names, e["returns"]):
                 m.log_value(("explore", f"return_{name}"), value, window=500)
 

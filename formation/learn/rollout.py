@@ -23,6 +23,7 @@ from formation.learn.replay import Chunk
 # repeated (no motion visible), so the state just before the end would be seen unlike in play
 FAILURE_STEPS_BACK = (2, 8)
 FAILURE_POOL = 512  # the most recent failures a rollout keeps to restart from
+STARTS = ("spec", "exploring", "failure")  # where an episode started: its statistics' "start"
 
 def exploring_start(scenario: Scenario, config: GameConfig, rng: np.random.Generator, tries: int = 20) -> Scenario:
     """``scenario`` with its team moved as one, every agent by the same rows and columns, to a place drawn
@@ -61,6 +62,7 @@ class GameRollout:
         # each game's states of its episode so far, newest last (only those a failure restart may go back to)
         self._history = [collections.deque(maxlen=FAILURE_STEPS_BACK[1]) for _ in range(batch_size)]
         self._failures: collections.deque = collections.deque(maxlen=FAILURE_POOL)  # states to restart from
+        self._starts = np.zeros(batch_size, np.int8)  # each game's episode: its index in STARTS
         self._restart(np.ones(batch_size, bool))
         self.observer = Observer(self.game)
         self.batch_size = batch_size
@@ -110,7 +112,8 @@ class GameRollout:
                 self._episodes.append({
                     "returns": self._returns[i].tolist(), "steps": int(g.steps[i]), "success": bool(g.success[i]),
                     "collided": bool(g.collided[i].any()), "broken": bool(not g.formation_kept[i]),
-                    "reached": bool(g.reached[i]), "truncated": bool(g.truncated[i])})
+                    "reached": bool(g.reached[i]), "truncated": bool(g.truncated[i]),
+                    "start": STARTS[self._starts[i]]})
             self._returns[ended] = 0
             # Only a truncated episode bootstraps from the state after its last step.
             cut = np.flatnonzero(g.truncated)
@@ -148,11 +151,13 @@ class GameRollout:
         failure, then move the team of a random ``exploring_starts`` share of the others."""
         for i in np.flatnonzero(restarted).tolist():
             self._history[i].clear()
+        self._starts[restarted] = STARTS.index("spec")
         if self.failure_restarts > 0 and self._failures:
             back = restarted & (self._start_rng.random(len(restarted)) < self.failure_restarts)
             if back.any():
                 picks = self._start_rng.integers(0, len(self._failures), int(back.sum()))
                 self.game.load([self._failures[k] for k in picks], mask=back)
+                self._starts[back] = STARTS.index("failure")
                 restarted = restarted & ~back
         if self.exploring_starts <= 0:
             return
@@ -160,6 +165,7 @@ class GameRollout:
         if moved.any():
             self.game.load([exploring_start(self.game.scenario(i), self.config, self._start_rng)
                             for i in np.flatnonzero(moved)], mask=moved)
+            self._starts[moved] = STARTS.index("exploring")
 
     def pop_episodes(self) -> list[dict]:
         out, self._episodes = self._episodes, []
