@@ -25,6 +25,7 @@ FAILURE_STEPS_BACK = (2, 8)
 FAILURE_POOL = 512  # the most recent failures a rollout keeps to restart from
 STARTS = ("spec", "exploring", "failure")  # where an episode started: its statistics' "start"
 
+
 def exploring_start(scenario: Scenario, config: GameConfig, rng: np.random.Generator, tries: int = 20) -> Scenario:
     """``scenario`` with its team moved as one, every agent by the same rows and columns, to a place drawn
     uniformly among those that keep every agent on the board, none within distance 1 of an obstacle
