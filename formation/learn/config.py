@@ -66,8 +66,8 @@ class TrainSettings:
     exploring_starts: float = 0.0
     # failure restarts: the fraction of training episodes that start from the state a few steps before the end of
     # a recent training episode that ended in a collision or a formation break (formation.learn.rollout), so
-    # that the learner sees the states it fails in again and again, with the teacher's labels. Evaluation
-    # always starts from the spec's places
+    # that the learner sees the states it fails in again and again, with the teacher's labels (no gain on
+    # settings 2 and 4: docs/TRAINING.md). Evaluation always starts from the spec's places
     failure_restarts: float = 0.0
     margin: float = 5.0  # DQfD large-margin loss weight towards the teacher's actions (labels)
     margin_gap: float = 5.0  # DQfD's l(a_E, a): how far above every other action the teacher's Q must stand
