@@ -60,7 +60,8 @@ class GameRollout:
         self.game.reset()
         self.exploring_starts, self.failure_restarts = exploring_starts, failure_restarts
         self._start_rng = np.random.default_rng([seed or 0, stream_offset, 11])
-        # each game's states of its episode so far, newest last (only those a failure restart may go back to)
+        # with failure restarts, each game's states of its episode so far, newest last (only those a restart may
+        # go back to)
         self._history = [collections.deque(maxlen=FAILURE_STEPS_BACK[1]) for _ in range(batch_size)]
         self._failures: collections.deque = collections.deque(maxlen=FAILURE_POOL)  # states to restart from
         self._starts = np.zeros(batch_size, np.int8)  # each game's episode: its index in STARTS
@@ -150,9 +151,10 @@ class GameRollout:
     def _restart(self, restarted: np.ndarray) -> None:
         """Start a random ``failure_restarts`` share of the ``restarted`` games (just reset) from a kept
         failure, then move the team of a random ``exploring_starts`` share of the others."""
-        for i in np.flatnonzero(restarted).tolist():
-            self._history[i].clear()
         self._starts[restarted] = STARTS.index("spec")
+        if self.failure_restarts > 0:  # only then is there a history to forget
+            for i in np.flatnonzero(restarted).tolist():
+                self._history[i].clear()
         if self.failure_restarts > 0 and self._failures:
             back = restarted & (self._start_rng.random(len(restarted)) < self.failure_restarts)
             if back.any():
