@@ -92,7 +92,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
             raise ConfigError(f"--{name}: {value} is not allowed; allowed: an integer >= 1")
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed: {args.seed} is not allowed; allowed: an integer >= 0")
-    policy = load(local_run_folder(args.checkpoint))
+    if args.shield < 0:
+        raise ConfigError(f"--shield: {args.shield} is not allowed; allowed: an integer >= 0 (steps ahead; 0: none)")
+    policy = load(local_run_folder(args.checkpoint)).shielded(args.shield)
     trained_on = policy.game.setting
     if args.setting is not None and trained_on != args.setting:
         what = f"setting {trained_on}" if trained_on is not None else \
@@ -115,9 +117,11 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print(f"{start}{phase}: {done}/{total} episodes", end=end, file=sys.stderr, flush=True)
 
     report = evaluate_policy(policy.game, policy.act_batch, episodes, seed, workers=workers, progress=progress)
-    report = {"checkpoint": str(args.checkpoint), "setting": trained_on, "env_steps": policy.env_steps, **report}
+    report = {"checkpoint": str(args.checkpoint), "setting": trained_on, "env_steps": policy.env_steps,
+              "shield": args.shield, **report}
     print(f"{args.checkpoint}: {episodes} greedy episodes"
-          + (f" after {policy.env_steps:,} env steps" if policy.env_steps is not None else ""))
+          + (f" after {policy.env_steps:,} env steps" if policy.env_steps is not None else "")
+          + (f", behind a shield of {args.shield} steps" if args.shield else ""))
     print(format_report(report))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
@@ -177,6 +181,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--setting", type=int, help="fail unless the policy was trained on this named setting")
     evaluate.add_argument("--workers", type=int, help="processes for the planner (default: the CPU cores, up to 8)")
     evaluate.add_argument("--json", metavar="PATH", help="also write the numbers as JSON")
+    evaluate.add_argument("--shield", type=int, default=0, metavar="STEPS",
+                          help="play behind a safety shield that vetoes moves lost within STEPS steps "
+                               "(formation.shield; default 0: the networks alone)")
     evaluate.set_defaults(run=cmd_evaluate)
 
     export = sub.add_parser("export", help="write a checkpoint's networks and a policy card for torch alone")

@@ -45,7 +45,7 @@ from formation.config import ConfigError, GameConfig
 from formation.game import COLLISION_OFFSETS, MOVES, BatchedGame, Scenario, parse_scenario
 
 __all__ = ["lower_bound", "paths_exist", "shortest_first_moves", "shortest_first_moves_many", "shortest_path",
-           "shortest_path_counts"]
+           "shortest_path_counts", "surviving_first_moves_many"]
 
 N_ACTIONS = len(MOVES)
 # Largest state-code space deduplicated with a dense array (int32 entries); above it, np.unique.
@@ -119,6 +119,47 @@ def shortest_path_counts(scenario: dict | Scenario, *,
         return None
     length, counts = found
     return length, {_split(j, 1 + len(parsed.followers)): float(counts[j]) for j in np.flatnonzero(counts)}
+
+
+def surviving_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: GameConfig,
+                               horizon: int) -> np.ndarray:
+    """For every scenario, the joint actions that start ``horizon`` steps free of collisions and
+    formation breaks (or that reach the destination sooner, with every step up to it free of them),
+    as ``(scenarios,)`` uint64 bit masks (bit ``joint index``, as ``shortest_first_moves``'s joint
+    actions). No deadline: the leader need not head for the destination. At most two followers."""
+    n_agents = 1 + config.n_followers
+    if N_ACTIONS ** n_agents > 64:
+        raise ConfigError(f"n_followers: {n_agents - 1} is not allowed here; allowed: 1 or 2")
+    if not isinstance(horizon, int) or horizon < 1:
+        raise ConfigError(f"horizon: {horizon!r} is not allowed; allowed: an integer >= 1")
+    parsed = [parse_scenario(s, config) for s in scenarios]
+    safe = np.zeros(len(parsed), np.uint64)
+    if not parsed:
+        return safe
+    board = _Board(config)
+    zones = _ObstacleFuture(config, parsed, board).zones(horizon)
+    layer = np.array([[r * board.width + c for r, c in (p.leader, *p.followers)] for p in parsed], np.int32)
+    owner = np.arange(len(parsed))
+    firsts = None  # per state of the layer: the first joint actions of the paths reaching it (a bit mask)
+    dedupe = _Deduplicator(board, n_agents, len(parsed))
+    n_cells = board.height * board.width
+    for t in range(horizon):
+        parent, joint, cells = _successors(board, layer, zones[:, t + 1].reshape(-1), config.max_steps,
+                                           offset=owner * n_cells)
+        owner = owner[parent]
+        carried = firsts[parent] if firsts is not None else np.uint64(1) << joint.astype(np.uint64)
+        done = cells[:, 0] == board.destination  # a success ends the episode: nothing after it can fail
+        if t == horizon - 1:
+            done[:] = True
+        np.bitwise_or.at(safe, owner[done], carried[done])
+        cells, owner, carried = cells[~done], owner[~done], carried[~done]
+        if len(cells) == 0:
+            break
+        keep, inverse = dedupe.groups(cells, owner)
+        firsts = np.zeros(len(keep), np.uint64)
+        np.bitwise_or.at(firsts, inverse, carried)
+        layer, owner = cells[keep], owner[keep]
+    return safe
 
 
 def _first_found(search, parsed: Scenario, config: GameConfig):

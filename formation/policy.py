@@ -21,6 +21,7 @@ a ``ConfigError`` with one line naming the problem.
 
 from __future__ import annotations
 
+import copy
 import json
 import pickle
 from dataclasses import dataclass
@@ -32,6 +33,7 @@ import torch
 
 from formation.config import ConfigError, GameConfig
 from formation.learn.qnet import N_ACTIONS, DuelingQNetwork, team_q_values
+from formation.shield import Shield, shielded_moves
 
 FORMAT_VERSION = 1
 CARD = "policy.json"
@@ -96,6 +98,7 @@ class Policy:
         self.source = source
         self.env_steps = env_steps
         self.eval_settings = dict(eval_settings or DEFAULT_EVAL)
+        self.shield: Shield | None = None
         for net in networks.values():
             net.eval()
             net.requires_grad_(False)
@@ -126,10 +129,24 @@ class Policy:
         by_module = {m: self.q_values(obs, m) for m in sorted(set(self.agent_modules))}
         return team_q_values(by_module, self.agent_modules)
 
+    def shielded(self, horizon: int) -> Policy:
+        """The same networks behind a safety shield that looks ``horizon`` steps ahead
+        (``formation.shield``; 0: none)."""
+        twin = copy.copy(self)
+        twin.shield = None if horizon == 0 else Shield(self.game, horizon)
+        return twin
+
     def act_batch(self, obs: np.ndarray) -> np.ndarray:
         """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares
-        (``formation.evaluate.play_greedy``'s ``act``)."""
-        return self.q_batch(obs).argmax(axis=-1)
+        (``formation.evaluate.play_greedy``'s ``act``); behind the shield where one is set."""
+        if self.shield is None:
+            return self.q_batch(obs).argmax(axis=-1)
+        by_module = {m: self.q_values(obs, m) for m in sorted(set(self.agent_modules))}
+        leader_q, follower_q = by_module[self.agent_modules[0]], by_module[self.agent_modules[1]]
+        if follower_q.shape[-1] == N_ACTIONS:  # it does not answer the leader: the same values for every move
+            follower_q = np.repeat(follower_q[:, None], N_ACTIONS, axis=1)
+        follower_q = follower_q.reshape(len(obs), N_ACTIONS, N_ACTIONS)
+        return shielded_moves(leader_q, follower_q, self.shield.allowed(obs))
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, int]:
         """Greedy actions of the agents in ``observations`` (per-agent observations as the PettingZoo
@@ -137,6 +154,9 @@ class Policy:
         unknown = [a for a in observations if a not in self.module_of]
         if unknown:
             raise ValueError(f"observations: unknown agent(s) {unknown}; this policy's agents: {self.agents}")
+        if self.shield is not None and observations:  # every agent sees the same screen: one joint move
+            joint = self.act_batch(np.asarray(next(iter(observations.values())))[None])[0]
+            return {a: int(joint[self.agents.index(a)]) for a in observations}
         by_module: dict[str, list[str]] = {}
         for agent in observations:
             by_module.setdefault(self.module_of[agent], []).append(agent)
