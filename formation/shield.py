@@ -25,6 +25,7 @@ import numpy as np
 
 from formation.config import ConfigError, GameConfig
 from formation.game.render import GRID_PLANES, cell_pixel_bounds
+from formation.game.scenario import parse_scenario
 from formation.planner import N_ACTIONS, surviving_first_moves_many
 
 N_JOINT = N_ACTIONS * N_ACTIONS
@@ -99,11 +100,11 @@ def read_states(obs: np.ndarray, config: GameConfig, horizon: int, reader: Frame
         return None
     agent_rows = [int(leader[0, 0]), *followers[:, 0].tolist()]
     near_top, near_bottom = min(agent_rows) - horizon - 1, max(agent_rows) + 1
+    moved = before is not None and bool((before["obstacles"] != now["obstacles"]).any())
     per_obstacle: list[list[list[int]]] = []
     for row in np.unique(np.nonzero(now["obstacles"])[0]).tolist():
         cols = np.flatnonzero(now["obstacles"][row]).tolist()
         cols_before = np.flatnonzero(before["obstacles"][row]).tolist() if before is not None else []
-        moved = before is not None and (before["obstacles"] != now["obstacles"]).any()
         known = moved and len(cols) == 1 and len(cols_before) == 1
         for col in cols:
             velocities = obstacle_readings(col, cols_before[0] if known else None, config.width,
@@ -140,40 +141,26 @@ class Shield:
         allowed = np.ones((n, N_JOINT), bool)
         scenarios, owner = [], []
         for i in range(n):
-            try:
-                readings = read_states(obs[i], self.config, self.horizon, self.reader)
+            try:  # a state the game refuses (overlapping cells, a broken formation) is a game already over
+                readings = [parse_scenario(s, self.config) for s in read_states(obs[i], self.config, self.horizon,
+                                                                                self.reader) or []]
             except ConfigError:
-                readings = None
-            for scenario in readings or []:
-                scenarios.append(scenario)
-                owner.append(i)
+                continue
+            scenarios.extend(readings)
+            owner.extend([i] * len(readings))
         if scenarios:
             masks = np.zeros(len(scenarios), np.uint64)
-            sizes = np.array([len(s["obstacles"]) for s in scenarios])
+            sizes = np.array([len(s.obstacles) for s in scenarios])
             for size in np.unique(sizes):  # a batch of the planner holds one number of obstacles
                 group = np.flatnonzero(sizes == size)
-                masks[group] = self._safe_moves([scenarios[k] for k in group])
+                masks[group] = surviving_first_moves_many([scenarios[k] for k in group], config=self.config,
+                                                          horizon=self.horizon)
             safe = ((masks[:, None] >> np.arange(N_JOINT, dtype=np.uint64)) & np.uint64(1)).astype(bool)
             votes = np.zeros((n, N_JOINT), np.int64)
             np.add.at(votes, np.asarray(owner), safe)
             best = votes.max(axis=1, keepdims=True)
             allowed = np.where(best > 0, votes == best, True)
         return allowed.reshape(n, N_ACTIONS, N_ACTIONS)
-
-    def _safe_moves(self, scenarios: list[dict]) -> np.ndarray:
-        """The planner's safe joint moves of each scenario; none for one the game refuses (cells that
-        overlap, a broken formation: a game already over)."""
-        try:
-            return surviving_first_moves_many(scenarios, config=self.config, horizon=self.horizon)
-        except ConfigError:
-            pass
-        masks = np.zeros(len(scenarios), np.uint64)
-        for k, scenario in enumerate(scenarios):
-            try:
-                masks[k] = surviving_first_moves_many([scenario], config=self.config, horizon=self.horizon)[0]
-            except ConfigError:
-                pass
-        return masks
 
 
 def shielded_moves(leader_q: np.ndarray, follower_q: np.ndarray, allowed: np.ndarray) -> np.ndarray:

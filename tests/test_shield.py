@@ -188,3 +188,21 @@ def test_evaluate_behind_the_shield_reports_it_and_a_bad_horizon_is_one_line(tmp
     assert "Traceback" not in out_text + err
     assert err.strip().splitlines() == ["formation: error: --shield: -2 is not allowed; allowed: an integer >= 0 "
                                         "(steps ahead; 0: none)"]
+
+
+def test_a_finished_or_unreadable_game_gets_no_veto():
+    config = GameConfig.from_setting(2)
+    game = BatchedGame(config, batch_size=2)
+    game.reset()
+    game.load([{"leader": [15, 10], "follower": [17, 10], "obstacles": [[5, 3, 1], [6, 20, -1], [7, 12, 2]]}] * 2)
+    observer = Observer(game)
+    observer.observe(np.ones(2, bool))
+    game.step(np.array([[0, 3], [0, 0]]))  # the first game's leader walks away: distance 3, still kept
+    game.step(np.array([[0, 3], [0, 0]]))  # distance 4: broken, the game is over
+    assert game.done.tolist() == [True, False]
+    obs = observer.observe(np.zeros(2, bool))
+    shield = Shield(config, horizon=2)
+    allowed = shield.allowed(obs)
+    assert allowed[0].all() and not allowed[1].all()  # the live game keeps its vetoes
+    blank = np.zeros_like(obs[:1])  # no agent on the screen
+    assert shield.allowed(blank).all()
