@@ -60,17 +60,20 @@ class NetworkSpec:
     forecast: bool = False  # the obstacle forecast planes (formation.learn.qnet.ObstacleForecast)
     row_scan: int = 0  # planes of a RowScan (formation.learn.qnet)
     answers_leader: bool = False  # 16 Q-values, one per (leader's move, own move) (formation.learn.qnet)
+    safety: bool = False  # a safety head: 16 logits, one per joint move (formation.learn.qnet)
 
     def build(self) -> DuelingQNetwork:
         return DuelingQNetwork(self.obs_shape, high=self.high, hidden=self.hidden, channels=self.channels,
                                window=self.window, frame_channels=self.frame_channels, cells=self.cells,
-                               forecast=self.forecast, row_scan=self.row_scan, answers_leader=self.answers_leader)
+                               forecast=self.forecast, row_scan=self.row_scan, answers_leader=self.answers_leader,
+                               safety=self.safety)
 
     def to_dict(self) -> dict[str, Any]:
         return {"obs_shape": list(self.obs_shape), "high": self.high, "hidden": self.hidden,
                 "channels": list(self.channels), "window": list(self.window) if self.window is not None else None,
                 "frame_channels": self.frame_channels, "cells": list(self.cells) if self.cells is not None else None,
-                "forecast": self.forecast, "row_scan": self.row_scan, "answers_leader": self.answers_leader}
+                "forecast": self.forecast, "row_scan": self.row_scan, "answers_leader": self.answers_leader,
+                "safety": self.safety}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> NetworkSpec:
@@ -82,7 +85,8 @@ class NetworkSpec:
                    frame_channels=int(frame_channels) if frame_channels is not None else None,
                    cells=tuple(int(v) for v in cells) if cells is not None else None,
                    forecast=bool(values.get("forecast", False)), row_scan=int(values.get("row_scan", 0)),
-                   answers_leader=bool(values.get("answers_leader", False)))
+                   answers_leader=bool(values.get("answers_leader", False)),
+                   safety=bool(values.get("safety", False)))
 
 
 class Policy:
@@ -99,6 +103,8 @@ class Policy:
         self.env_steps = env_steps
         self.eval_settings = dict(eval_settings or DEFAULT_EVAL)
         self.shield: Shield | None = None
+        # networks with a safety head (train.safety_horizon) keep greedy play to the joint moves it judges safe
+        self.learned_veto = any(net.safety is not None for net in networks.values())
         for net in networks.values():
             net.eval()
             net.requires_grad_(False)
@@ -136,17 +142,36 @@ class Policy:
         twin.shield = None if horizon == 0 else Shield(self.game, horizon)
         return twin
 
+    def without_learned_veto(self) -> Policy:
+        """The same networks playing their greedy moves whatever their safety heads say."""
+        twin = copy.copy(self)
+        twin.learned_veto = False
+        return twin
+
+    def learned_safe_moves(self, obs: np.ndarray) -> np.ndarray:
+        """(N, leader's move, follower's move) bool: the joint moves the networks' safety heads judge safe
+        (their mean probability above one half)."""
+        heads = [net for net in self.networks.values() if net.safety is not None]
+        with torch.no_grad():
+            x = torch.from_numpy(np.ascontiguousarray(obs))
+            p = torch.stack([torch.sigmoid(net.safety_logits(net.prepare(x))) for net in heads]).mean(0)
+        return (p > 0.5).numpy().reshape(len(obs), N_ACTIONS, N_ACTIONS)
+
     def act_batch(self, obs: np.ndarray) -> np.ndarray:
         """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares
         (``formation.evaluate.play_greedy``'s ``act``); behind the shield where one is set."""
-        if self.shield is None:
+        if self.shield is None and not self.learned_veto:
             return self.q_batch(obs).argmax(axis=-1)
         by_module = {m: self.q_values(obs, m) for m in sorted(set(self.agent_modules))}
         leader_q, follower_q = by_module[self.agent_modules[0]], by_module[self.agent_modules[1]]
         if follower_q.shape[-1] == N_ACTIONS:  # it does not answer the leader: the same values for every move
             follower_q = np.repeat(follower_q[:, None], N_ACTIONS, axis=1)
         follower_q = follower_q.reshape(len(obs), N_ACTIONS, N_ACTIONS)
-        return shielded_moves(leader_q, follower_q, self.shield.allowed(obs))
+        allowed = self.shield.allowed(obs) if self.shield is not None else np.ones(follower_q.shape, bool)
+        if self.learned_veto:  # within the shield's moves where they have some in common
+            both = allowed & self.learned_safe_moves(obs)
+            allowed = np.where(both.any(axis=(1, 2), keepdims=True), both, allowed)
+        return shielded_moves(leader_q, follower_q, allowed)
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, int]:
         """Greedy actions of the agents in ``observations`` (per-agent observations as the PettingZoo
@@ -154,7 +179,7 @@ class Policy:
         unknown = [a for a in observations if a not in self.module_of]
         if unknown:
             raise ValueError(f"observations: unknown agent(s) {unknown}; this policy's agents: {self.agents}")
-        if self.shield is not None and observations:  # every agent sees the same screen: one joint move
+        if (self.shield is not None or self.learned_veto) and observations:  # one screen for all: one joint move
             joint = self.act_batch(np.asarray(next(iter(observations.values())))[None])[0]
             return {a: int(joint[self.agents.index(a)]) for a in observations}
         by_module: dict[str, list[str]] = {}
@@ -229,7 +254,8 @@ def run_specs(run) -> tuple[dict[str, NetworkSpec], list[str]]:
     values = {"obs_shape": shape, "high": float(obs_space.high.max()), "hidden": run.train.hidden,
               "channels": run.train.channels, **leader_window_config(run, shape)}
     agent_modules = module_of_agent(run)
-    return {m: NetworkSpec.from_dict({**values, "answers_leader": answers_leader(run, m)})
+    return {m: NetworkSpec.from_dict({**values, "answers_leader": answers_leader(run, m),
+                                      "safety": run.train.safety_horizon > 0})
             for m in sorted(set(agent_modules))}, agent_modules
 
 

@@ -37,7 +37,8 @@ RESUMABLE_SECTIONS = ("resources",)
 FAULT_COUNTERS = ("rollout_actor_restarts", "replay_restarts", "updates_skipped")
 # each module's learner results in metrics.jsonl, as learner/<module>/<name>
 LEARNER_METRICS = {"q_mean": "q_mean", "td_abs_mean": "td_abs_mean", "total_loss": "total_loss",
-                   "default_optimizer_learning_rate": "lr"}
+                   "default_optimizer_learning_rate": "lr", "safety_loss": "safety_loss",
+                   "safety_error": "safety_error"}
 
 
 class Stop(KeyboardInterrupt):

@@ -42,8 +42,8 @@ def mirror_scenario(scenario: Scenario, config: GameConfig) -> Scenario:
 
 def mirror_steps(sample: dict[str, np.ndarray], which: np.ndarray) -> dict[str, np.ndarray]:
     """A replay sample (``obs`` and ``next_obs`` as (N, H, W, C), ``actions`` and ``labels`` as (N, agents),
-    optionally ``answers`` as (N, agents, moves) and ``accepted`` as (N,) bit masks of joint actions of a leader
-    and one follower; labels and answers -1 where none) with the steps ``which``
+    optionally ``answers`` as (N, agents, moves), and ``accepted`` and ``safe`` as (N,) bit masks of joint
+    actions of a leader and one follower; labels and answers -1 where none) with the steps ``which``
     (N bools) seen in a mirror; the others, and the rewards, discounts and weights, as they were. A new
     dict; the arrays given are not written to."""
     out = dict(sample)
@@ -59,8 +59,9 @@ def mirror_steps(sample: dict[str, np.ndarray], which: np.ndarray) -> dict[str, 
             moves = moves[..., MIRRORED_MOVE]
         mirrored = np.where(moves >= 0, MIRRORED_MOVE[np.clip(moves, 0, None)], moves).astype(moves.dtype)
         out[key] = np.where(which.reshape(-1, *[1] * (moves.ndim - 1)), mirrored, sample[key])
-    if "accepted" in sample:
-        out["accepted"] = np.where(which, mirror_joint_masks(sample["accepted"]), sample["accepted"])
+    for key in ("accepted", "safe"):  # joint-move bit masks
+        if key in sample:
+            out[key] = np.where(which, mirror_joint_masks(sample[key]), sample[key])
     return out
 
 

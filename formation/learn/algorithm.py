@@ -18,9 +18,7 @@ import time
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 import ray
-import torch
 from ray.rllib.algorithms.dqn import DQN, DQNConfig
 from ray.rllib.core import COMPONENT_RL_MODULE
 from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
@@ -39,7 +37,6 @@ from formation.game.render import GRID_PLANES
 from formation.learn.config import RunConfig, lr_schedule
 from formation.learn.learner import FormationLearner
 from formation.learn.module import DuelingQModule
-from formation.learn.qnet import q_values_of, team_q_values
 from formation.learn.replay_actor import ReplayActor
 from formation.learn.rollout import STARTS
 from formation.learn.rollout_actor import RolloutActor, answers_leader, module_of_agent, spaces_of
@@ -90,6 +87,10 @@ class FormationDQNConfig(DQNConfig):
         return self.run.train.label_preference
 
     @property
+    def safety_weight(self) -> float:
+        return self.run.train.safety_weight
+
+    @property
     def prioritized(self) -> bool:
         return self.run.train.prioritized
 
@@ -100,7 +101,7 @@ def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLMo
     obs_space, act_space = spaces_of(run)
     model_config = {"hidden": t.hidden, "channels": list(t.channels),
                     "epsilon": [(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)],
-                    **leader_window_config(run, obs_space.shape)}
+                    "safety": t.safety_horizon > 0, **leader_window_config(run, obs_space.shape)}
     return {m: RLModuleSpec(module_class=DuelingQModule, observation_space=obs_space,
                             action_space=gym.spaces.Discrete(16) if answers_leader(run, m) else act_space,
                             model_config={**model_config, "answers_leader": answers_leader(run, m)},
@@ -232,19 +233,15 @@ class GreedyEvaluationMixin:
         return self.play_greedy(episodes, seed)["summary"]
 
     def play_greedy(self, episodes: int | None = None, seed: int | None = None, record: int = 0) -> dict:
+        from formation.policy import Policy, run_specs
+
         run = self.run
         modules = self.local_modules()
-        names = module_of_agent(run)
-        used = sorted(set(names))
-
-        def act(obs: np.ndarray) -> np.ndarray:
-            x = torch.from_numpy(obs)
-            with torch.no_grad():
-                q = {m: v.numpy() for m, v in q_values_of({m: modules[m].q_network for m in used}, x).items()}
-            return team_q_values(q, names).argmax(-1)
-
-        return play_greedy(run.game, act, episodes or run.eval.episodes, run.eval.seed if seed is None else seed,
-                           record=record)
+        specs, names = run_specs(run)
+        # the team as formation.policy.load restores it (with its safety heads' veto, if any)
+        team = Policy(run.game, {m: modules[m].q_network for m in specs}, specs, names, source="training")
+        return play_greedy(run.game, team.act_batch, episodes or run.eval.episodes,
+                           run.eval.seed if seed is None else seed, record=record)
 
     def local_modules(self) -> dict:
         """CPU copies of the learner's current modules."""
@@ -314,8 +311,9 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         agents = module_of_agent(self.run)
         answering = [m for m in set(agents) if answers_leader(self.run, m)]
         mirror, seed, any_shortest = self.run.train.mirror, self.run.train.seed, self.run.train.any_shortest_move
+        safety = self.run.train.safety_horizon > 0
         self.learner_group.foreach_learner(
-            lambda learner: learner.set_replays(replays, agents, answering, mirror, seed, any_shortest))
+            lambda learner: learner.set_replays(replays, agents, answering, mirror, seed, any_shortest, safety))
 
     def restore_env_runners(self, env_runner_group):
         restored = super().restore_env_runners(env_runner_group)

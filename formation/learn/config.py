@@ -131,6 +131,13 @@ class TrainSettings:
     # swapped; formation.game.mirror): twice the states from the same play. Needs a board that is its own
     # mirror image (an odd width, one follower: settings 1-2)
     mirror: bool = False
+    # each Q-network also learns, beside its Q-values, which of the team's 16 joint moves start this many steps
+    # free of collisions and formation breaks (the planner on the game's true state labels every visited
+    # state, as the teacher labels it; formation.planner.surviving_first_moves_many), with a loss weighted by
+    # safety_weight; greedy play then keeps to the joint moves that head judges safe (formation.policy). 0: none.
+    # Needs one follower
+    safety_horizon: int = 0
+    safety_weight: float = 1.0
     grad_clip: float = 10.0
     total_env_steps: int = 300_000
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
@@ -151,6 +158,7 @@ class TrainSettings:
         _number(self, "margin", 0.0, math.inf)
         _number(self, "margin_gap", 0.0, math.inf)
         _number(self, "label_preference", 0.0, math.inf)
+        _number(self, "safety_weight", 0.0, math.inf)
         _number(self, "grad_clip", 0.0, math.inf, low_open=True)
         if self.potential not in POTENTIALS:
             raise ConfigError(f"train.potential: {self.potential!r} is not allowed; allowed: {', '.join(POTENTIALS)}")
@@ -160,6 +168,7 @@ class TrainSettings:
             _integer(self, name, 1)
         _integer(self, "learning_starts", 0)
         _integer(self, "row_scan", 0)
+        _integer(self, "safety_horizon", 0)
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
                      "tolerant_formation", "obstacle_forecast", "follower_answers_leader", "mirror",
@@ -194,10 +203,11 @@ class TrainSettings:
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
         if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0
-                                     or self.prioritized or self.dagger or self.follower_answers_leader):
+                                     or self.prioritized or self.dagger or self.follower_answers_leader
+                                     or self.safety_horizon):
             raise ConfigError("train.path: stock runs RLlib's DQN on the paper's reward alone; "
                               "set train.shaping: 0, demonstrations: 0, margin: 0, prioritized: false, dagger: false, "
-                              "follower_answers_leader: false")
+                              "follower_answers_leader: false, safety_horizon: 0")
         if self.leader_window is not None and (
                 not isinstance(self.leader_window, tuple) or len(self.leader_window) != 3
                 or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in self.leader_window)):
@@ -283,6 +293,9 @@ class RunConfig:
         if self.train.any_shortest_move != "none" and self.game.n_followers != 1:
             raise ConfigError(f"train.any_shortest_move: {self.train.any_shortest_move} needs game.n_followers: 1 "
                               f"(not {self.game.n_followers}); allowed: none")
+        if self.train.safety_horizon and self.game.n_followers != 1:
+            raise ConfigError(f"train.safety_horizon: {self.train.safety_horizon} needs game.n_followers: 1 "
+                              f"(not {self.game.n_followers}); allowed: 0")
         if self.train.obstacle_forecast:
             if patches:
                 raise ConfigError("train.obstacle_forecast: true needs the screen read per cell; allowed: false, "

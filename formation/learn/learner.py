@@ -23,15 +23,16 @@ from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from formation.game.core import joint_mask_bits
 from formation.game.mirror import mirror_steps
-from formation.learn.module import PREPARED_NEXT_OBS, PREPARED_OBS
+from formation.learn.module import PREPARED_NEXT_OBS, PREPARED_OBS, SAFETY_LOGITS
 from formation.learn.qnet import N_ACTIONS, double_q_target, large_margin_sets
 
 RETURNS, DISCOUNTS, LABELS, WEIGHTS = "n_step_returns", "n_step_discounts", "teacher_labels", "weights"
 ACCEPTED = "teacher_accepted"  # train.any_shortest_move: the moves the margin accepts, bools beside LABELS
+SAFE = "safe_joint_moves"  # train.safety_horizon: (N, 16) bools, the joint moves that start safe steps
 
 
 def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
-                   answering: frozenset[str] = frozenset(), any_shortest_move: str = "none"
+                   answering: frozenset[str] = frozenset(), any_shortest_move: str = "none", safety: bool = False
                    ) -> dict[str, dict[str, np.ndarray]]:
     """Split a replay sample (all agents) into one batch per module; agents that share a module
     (followers with one policy) contribute one row each for every sampled step. A module in
@@ -42,7 +43,8 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
     the shape of its labels and one more axis of 4 bools: every move of its own that the sample's
     ``accepted`` joint actions hold (for the leader, with any follower move; for the follower, in
     each row, with that move of the leader), and the label's move; with "leader" or "toward", the
-    leader's module alone."""
+    leader's module alone. With ``safety`` every module gets ``SAFE``, the sample's ``safe`` joint moves as
+    (N, 16) bools (leader's move, follower's move, row by row), one row per agent of the module."""
     rows: dict[str, list[int]] = {}
     for agent, module in enumerate(module_of_agent):
         rows.setdefault(module, []).append(agent)
@@ -62,6 +64,8 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
         if any_shortest_move == "team" or (any_shortest_move in ("leader", "toward") and agents == [0]):
             out[module][ACCEPTED] = np.concatenate([_accepted_moves(sample["accepted"], a, label)
                                                     for a, label in zip(agents, labels)])
+        if safety:
+            out[module][SAFE] = _repeat(joint_mask_bits(sample["safe"]).reshape(len(leader), -1), len(agents))
     return out
 
 
@@ -175,7 +179,7 @@ class FormationLearner(DQNTorchLearner):
                 batch[module_id][prepared] = x
 
     def set_replays(self, handles: list, module_of_agent: list[str], answering: list[str] = (), mirror: bool = False,
-                    seed: int = 0, any_shortest_move: str = "none") -> bool:
+                    seed: int = 0, any_shortest_move: str = "none", safety: bool = False) -> bool:
         """The replay shards to pull from, each agent's module, the modules that answer the leader,
         whether to see a random half of every batch in a mirror (``train.mirror``), and whether the margin
         accepts every move that starts a shortest path (``train.any_shortest_move``)."""
@@ -184,6 +188,7 @@ class FormationLearner(DQNTorchLearner):
         self._module_of_agent = list(module_of_agent)
         self._answering = frozenset(answering)
         self._any_shortest_move = any_shortest_move
+        self._safety = safety
         self._prefetch = None
         self._turn = 0
         self._priority: dict[str, np.ndarray] = {}
@@ -224,6 +229,12 @@ class FormationLearner(DQNTorchLearner):
         # logged by pull_and_update, in one thread (RLlib's metrics logger is not thread-safe)
         self._stats[module_id] = {"q_mean": q_taken.detach().mean().item(),
                                   "td_abs_mean": td.detach().abs().mean().item()}
+        if SAFE in batch and SAFETY_LOGITS in fwd_out:
+            logits, safe = fwd_out[SAFETY_LOGITS], batch[SAFE].float()
+            safety = torch.nn.functional.binary_cross_entropy_with_logits(logits, safe)
+            loss = loss + config.safety_weight * safety
+            self._stats[module_id].update(safety_loss=safety.item(),
+                                          safety_error=((logits.detach() > 0) != safe.bool()).float().mean().item())
         return loss
 
     def _request(self, batch_size: int, n_step: int, gamma: float, min_records: int):
@@ -248,7 +259,7 @@ class FormationLearner(DQNTorchLearner):
             self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma, min_records)
             incarnation = seen[index] = sample.pop("incarnation")
             batches = module_batches(self.augment(sample), self._module_of_agent, self._answering,
-                                     self._any_shortest_move)
+                                     self._any_shortest_move, self._safety)
             n = len(sample["ids"])
             batch = MultiAgentBatch({m: SampleBatch(b) for m, b in batches.items()}, env_steps=n)
             # DQNLearner syncs target networks by this count: ours counts learner updates.

@@ -3,7 +3,7 @@
 It implements RLlib's ``QNetAPI`` and ``TargetNetworkAPI``, so RLlib's DQN learner (the stock
 path) and ours both train it, and ``InferenceOnlyAPI``, so rollout actors get weights without
 the target network. ``model_config``: ``hidden``, ``channels``, ``window``, ``frame_channels``, ``cells``,
-``forecast``, ``row_scan``, ``answers_leader`` (see ``formation.learn.qnet``). A module that answers
+``forecast``, ``row_scan``, ``answers_leader``, ``safety`` (see ``formation.learn.qnet``). A module that answers
 the leader has 16 actions, (leader's move, own move) as ``4 * leader + own``: its greedy and
 exploring forward passes pick among those, so rollouts and evaluation pick its row themselves
 (``formation.learn.qnet.team_q_values``).
@@ -25,6 +25,7 @@ from formation.learn.qnet import DuelingQNetwork
 
 # a batch's observations as DuelingQNetwork.prepare makes them, when the learner prepared them already
 PREPARED_OBS, PREPARED_NEXT_OBS = "prepared_obs", "prepared_next_obs"
+SAFETY_LOGITS = "safety_logits"  # a network with a safety head: its (N, 16) logits (train.safety_horizon)
 
 
 class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI):
@@ -38,7 +39,8 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
                                          frame_channels=cfg.get("frame_channels"), cells=cfg.get("cells"),
                                          forecast=bool(cfg.get("forecast", False)),
                                          row_scan=int(cfg.get("row_scan", 0)),
-                                         answers_leader=bool(cfg.get("answers_leader", False)))
+                                         answers_leader=bool(cfg.get("answers_leader", False)),
+                                         safety=bool(cfg.get("safety", False)))
         # RLlib's DQNConfig puts an epsilon schedule into every module's model_config.
         self.epsilon_schedule = Scheduler(fixed_value_or_schedule=cfg.get("epsilon", 0.05), framework="torch")
 
@@ -79,8 +81,10 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
         ``PREPARED_NEXT_OBS``: the learner prepares once for every module that prepares alike)."""
         net = self.q_network
         x = batch[PREPARED_OBS] if PREPARED_OBS in batch else net.prepare(batch[Columns.OBS])
-        q = net.q_values(x)
+        features = net.features(x)
+        q = net.q_of(features)
+        out = {} if net.safety is None else {SAFETY_LOGITS: net.safety(features)}
         with torch.no_grad():  # targets only: no backward pass through the next observations
             x_next = batch[PREPARED_NEXT_OBS] if PREPARED_NEXT_OBS in batch else net.prepare(batch[Columns.NEXT_OBS])
             q_next, q_target_next = net.q_values(x_next), self._target_q_network.q_values(x_next)
-        return {QF_PREDS: q, QF_NEXT_PREDS: q_next, QF_TARGET_NEXT_PREDS: q_target_next}
+        return {QF_PREDS: q, QF_NEXT_PREDS: q_next, QF_TARGET_NEXT_PREDS: q_target_next, **out}

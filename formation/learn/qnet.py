@@ -264,12 +264,13 @@ class DuelingQNetwork(nn.Module):
     ``forecast``: add the planes of an ``ObstacleForecast`` to what the encoder reads (grids, or screens
     read per cell, of two frames or more). ``row_scan``: add that many planes of a ``RowScan`` before
     the encoder (0: none). ``answers_leader``: 16 Q-values, one per (leader's move, own move), row by
-    row, instead of 4."""
+    row, instead of 4. ``safety``: a second head beside the dueling one, 16 logits of whether each joint
+    move (leader's move, follower's move, row by row) is safe (``safety_logits``, ``train.safety_horizon``)."""
 
     def __init__(self, obs_shape: tuple[int, int, int], high: float = 255.0, hidden: int = 128,
                  channels: tuple[int, int, int] = (16, 32, 32), window: tuple[int, int, int] | None = None,
                  frame_channels: int | None = None, cells: tuple[int, int] | None = None, forecast: bool = False,
-                 row_scan: int = 0, answers_leader: bool = False):
+                 row_scan: int = 0, answers_leader: bool = False, safety: bool = False):
         super().__init__()
         self.obs_shape = tuple(obs_shape)
         screens = min(obs_shape[:2]) >= 64
@@ -306,6 +307,9 @@ class DuelingQNetwork(nn.Module):
         self.value = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, 1))
         outputs = N_ACTIONS ** 2 if answers_leader else N_ACTIONS
         self.advantage = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, outputs))
+        self.safety = None
+        if safety:
+            self.safety = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, N_ACTIONS ** 2))
         # what ``prepare`` depends on: equal keys, equal outputs for the same observations
         cells, forecast, window = self.cells, self.forecast, self.window
         self.prepare_key = (self.obs_shape, 1.0 / high,
@@ -332,12 +336,22 @@ class DuelingQNetwork(nn.Module):
             x = x if extra is None else torch.cat([x, extra], dim=3)
         return x.permute(0, 3, 1, 2)
 
-    def q_values(self, x: torch.Tensor) -> torch.Tensor:
-        """Q-values from ``prepare``'s output."""
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """What both heads read, from ``prepare``'s output."""
         if self.row_scan is not None:
             x = self.row_scan(x)
-        x = self.encoder(x)
-        return dueling(self.value(x), self.advantage(x))
+        return self.encoder(x)
+
+    def q_values(self, x: torch.Tensor) -> torch.Tensor:
+        """Q-values from ``prepare``'s output."""
+        return self.q_of(self.features(x))
+
+    def q_of(self, features: torch.Tensor) -> torch.Tensor:
+        return dueling(self.value(features), self.advantage(features))
+
+    def safety_logits(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 16) logits of each joint move being safe, from ``prepare``'s output (a network with ``safety``)."""
+        return self.safety(self.features(x))
 
 
 def q_values_of(networks: dict[str, DuelingQNetwork], obs: torch.Tensor) -> dict[str, torch.Tensor]:

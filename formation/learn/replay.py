@@ -39,7 +39,9 @@ class Chunk:
     optional: each agent's teacher action if the leader made each of its M moves
     (``train.answer_every_leader_move``), -1 where there is none. ``accepted`` (N,) int, optional: the
     joint actions that start a shortest path, as a bit mask (``Teacher.accepted``,
-    ``train.any_shortest_move``), 0 where there is none.
+    ``train.any_shortest_move``), 0 where there is none. ``safe`` (N,) int, optional: the joint actions
+    that start ``train.safety_horizon`` steps free of failure, as a bit mask
+    (``formation.planner.surviving_first_moves_many``), 0 where there is none.
     """
 
     streams: np.ndarray
@@ -53,6 +55,7 @@ class Chunk:
     labels: np.ndarray | None = None
     answers: np.ndarray | None = None
     accepted: np.ndarray | None = None
+    safe: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.streams)
@@ -80,6 +83,7 @@ class FrameReplay:
         self.labels = np.full((capacity, n_agents), -1, np.int8)
         self.answers = np.full((capacity, n_agents, len(MOVES)), -1, np.int8)
         self.accepted = np.zeros(capacity, np.uint16)  # one bit per joint action of a leader and one follower
+        self.safe = np.zeros(capacity, np.uint16)  # likewise
         self.added = 0  # records ever added; the next record's id
         self._stream_last: dict[int, int] = {}
         self.prioritized = prioritized
@@ -107,6 +111,7 @@ class FrameReplay:
         self.labels[slots] = chunk.labels if chunk.labels is not None else -1
         self.answers[slots] = chunk.answers if chunk.answers is not None else -1
         self.accepted[slots] = chunk.accepted if chunk.accepted is not None else 0
+        self.safe[slots] = chunk.safe if chunk.safe is not None else 0
         self.next[slots] = NONE
         # Link each record to the previous record of its stream (itself at an episode start).
         prev = np.empty(n, np.int64)
@@ -139,7 +144,7 @@ class FrameReplay:
     def nbytes(self) -> int:
         return sum(a.nbytes for a in (self.frames, self.ids, self.prev, self.next, self.actions, self.rewards,
                                       self.terminated, self.truncated, self.terminal, self.labels,
-                                      self.answers, self.accepted))
+                                      self.answers, self.accepted, self.safe))
 
     # ------------------------------------------------------------------ reading
     def _valid(self, ids: np.ndarray) -> np.ndarray:
@@ -191,7 +196,7 @@ class FrameReplay:
 
     def sample(self, batch_size: int, n_step: int = 1, gamma: float = 0.99, beta: float = 0.4) -> dict:
         """A batch of transitions for all agents: obs and next_obs stacks, actions, n-step returns,
-        discounts (0 after termination), teacher labels, answers and accepted joint actions, and ids /
+        discounts (0 after termination), teacher labels, answers, accepted and safe joint actions, and ids /
         importance weights for priorities."""
         if self.size == 0:
             raise ValueError("replay: sample() on an empty replay")
@@ -216,7 +221,7 @@ class FrameReplay:
         batch = {"obs": obs, "next_obs": next_obs, "actions": self.actions[slots].astype(np.int64),
                  "returns": returns, "discounts": discounts, "labels": self.labels[slots].astype(np.int64),
                  "answers": self.answers[slots].astype(np.int64), "accepted": self.accepted[slots].astype(np.int64),
-                 "ids": ids}
+                 "safe": self.safe[slots].astype(np.int64), "ids": ids}
         if self._priority is not None:
             p = self._priority.get(slots) / self._priority.total
             weights = (self.size * p) ** (-beta)

@@ -25,6 +25,7 @@ from formation.learn.qnet import q_values_of, team_q_values
 from formation.learn.rollout import GameRollout, concatenate
 from formation.learn.shaping import Potential
 from formation.learn.teacher import Teacher
+from formation.planner import surviving_first_moves_many
 
 
 def spaces_of(run: RunConfig) -> tuple[gym.spaces.Box, gym.spaces.Discrete]:
@@ -135,6 +136,13 @@ class RolloutActor(EnvRunner, Checkpointable):
                 joints[i] = joint
         return joints
 
+    def _safe(self) -> np.ndarray:
+        """``train.safety_horizon``: the joint actions that start that many steps free of collisions and
+        formation breaks from every game's present state, as bit masks (the planner on the true state)."""
+        game = self.rollout.game
+        return surviving_first_moves_many([game.scenario(i) for i in range(game.batch_size)], config=game.config,
+                                          horizon=self.run.train.safety_horizon)
+
     def _accepted(self, joints: np.ndarray) -> np.ndarray:
         """``train.any_shortest_move``: the joint actions that start a shortest path from every game's present
         state (``Teacher.accepted``, bit masks; with "toward", those that do not take the leader away from the
@@ -216,7 +224,8 @@ class RolloutActor(EnvRunner, Checkpointable):
                 labels, answers = self._labels(joints, greedy, actions)
             if run.train.any_shortest_move != "none":
                 accepted = self._accepted(joints)
-            chunks.append(rollout.step(actions, labels=labels, answers=answers, accepted=accepted))
+            safe = self._safe() if run.train.safety_horizon else None
+            chunks.append(rollout.step(actions, labels=labels, answers=answers, accepted=accepted, safe=safe))
             if not run.train.dagger:
                 for i in np.flatnonzero(rollout.game.steps[: self._demo_games] == 0):
                     self._plan(int(i))

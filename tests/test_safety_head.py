@@ -1,0 +1,137 @@
+"""A safety head learnt beside the Q-values (``train.safety_horizon``): the planner labels every visited
+state with the joint moves that start safe steps, the labels travel through the replay (and its mirror)
+to the learner, which fits the head, and greedy play keeps to the joint moves the head judges safe."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from formation.config import ConfigError, GameConfig
+from formation.game import BatchedGame, Observer
+from formation.game.mirror import mirror_steps
+from formation.learn.config import RunConfig
+from formation.learn.learner import SAFE, module_batches
+from formation.learn.qnet import DuelingQNetwork
+from formation.learn.replay import FrameReplay
+from formation.learn.rollout import GameRollout, concatenate
+from formation.planner import surviving_first_moves_many
+from formation.policy import NetworkSpec, Policy, export, load
+
+SMOKE = "configs/smoke.yaml"
+
+
+@pytest.mark.parametrize("key,value,message", [
+    ("train.safety_horizon", -1, "train.safety_horizon: -1 is not allowed; allowed: an integer >= 0"),
+    ("train.safety_horizon", "far", "train.safety_horizon: 'far' is not allowed; allowed: an integer >= 0"),
+    ("train.safety_weight", -0.5, "train.safety_weight: -0.5 is not allowed; allowed: a number in [0.0, inf]"),
+])
+def test_a_bad_safety_setting_is_one_line(key, value, message):
+    with pytest.raises(ConfigError) as err:
+        RunConfig.load(SMOKE, {key: value})
+    assert str(err.value) == message
+
+
+def test_a_safety_head_needs_one_follower():
+    with pytest.raises(ConfigError, match=r"train.safety_horizon: 2 needs game.n_followers: 1 \(not 2\)"):
+        RunConfig.load(SMOKE, {"train.safety_horizon": 2, "game.n_followers": 2, "game.width": 12,
+                               "train.follower_answers_leader": False})
+
+
+def test_the_head_gives_16_logits_beside_unchanged_q_values():
+    torch.manual_seed(0)
+    plain = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), answers_leader=True)
+    torch.manual_seed(0)
+    headed = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), answers_leader=True, safety=True)
+    obs = torch.randint(0, 2, (5, 9, 9, 8), dtype=torch.uint8)
+    assert plain.safety is None
+    assert torch.equal(plain(obs), headed(obs))  # the head adds weights after the Q-values' own
+    assert headed.safety_logits(headed.prepare(obs)).shape == (5, 16)
+
+
+def visited_states(config: GameConfig, games: int = 8, steps: int = 6, seed: int = 3):
+    """Chunks of a rollout with the safe joint moves of each state, as the rollout actor records them."""
+    rollout = GameRollout(config, games, seed=seed)
+    rng = np.random.default_rng(seed)
+    chunks, states = [], []
+    for _ in range(steps):
+        scenarios = [rollout.game.scenario(i) for i in range(games)]
+        safe = surviving_first_moves_many(scenarios, config=config, horizon=2)
+        states.append((scenarios, safe))
+        chunks.append(rollout.step(rng.choice([0, 3], size=(games, 2)), safe=safe))
+    return concatenate(chunks), states
+
+
+def test_safe_moves_travel_through_the_replay_to_the_module_batches_and_the_mirror():
+    config = GameConfig.from_setting(2, obs_type="grid", frame_stack=2, height=9, width=9, n_obstacles=2)
+    chunk, states = visited_states(config)
+    recorded = np.concatenate([safe for _, safe in states])
+    assert (chunk.safe == recorded).all() and (recorded != 0).any() and (recorded != 0xFFFF).any()
+    replay = FrameReplay(1000, chunk.frames.shape[1:], 2, 2, seed=0)
+    replay.add(chunk)
+    sample = replay.sample(32, n_step=1, gamma=0.9)
+    slots = sample["ids"] % replay.capacity
+    assert (sample["safe"] == replay.safe[slots]).all()
+    batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}), safety=True)
+    for module in ("leader", "follower"):
+        bits = batches[module][SAFE]
+        assert bits.shape == (32, 16)
+        assert (np.packbits(bits[:, ::-1], axis=1, bitorder="big").view(">u2")[:, 0] == sample["safe"]).all()
+    assert SAFE not in module_batches(sample, ["leader", "follower"], frozenset({"follower"}))["leader"]
+    # in the mirror, a joint move's left and right swap for both agents
+    mirrored = mirror_steps(sample, np.ones(32, bool))["safe"]
+    twice = mirror_steps({**sample, "safe": mirrored}, np.ones(32, bool))["safe"]
+    assert (twice == sample["safe"]).all() and (mirrored != sample["safe"]).any()
+
+
+def test_greedy_play_keeps_to_the_moves_the_head_judges_safe(tmp_path):
+    config = GameConfig.from_setting(2, obs_type="grid", frame_stack=2, height=9, width=9, n_obstacles=2)
+    spec = NetworkSpec(obs_shape=(9, 9, 8), high=1.0, hidden=16, channels=(4, 8, 8), safety=True)
+    follower_spec = NetworkSpec(**{**spec.__dict__, "answers_leader": True})
+    torch.manual_seed(0)
+    networks = {"leader": spec.build(), "follower": follower_spec.build()}
+    with torch.no_grad():  # the head: every joint move safe but those where the leader goes forward
+        for net in networks.values():
+            net.safety[-1].weight.zero_()
+            net.safety[-1].bias.copy_(torch.tensor([-9.0] * 4 + [9.0] * 12))
+            net.advantage[-1].bias[0] += 100.0  # and the networks' greedy leader move is forward
+    policy = Policy(config, networks, {"leader": spec, "follower": follower_spec}, ["leader", "follower"], "test")
+    game = BatchedGame(config, batch_size=16, seed=0)
+    game.reset()
+    obs = Observer(game).observe(np.ones(16, bool))
+    assert policy.learned_veto
+    assert (policy.without_learned_veto().act_batch(obs)[:, 0] == 0).all()
+    assert (policy.act_batch(obs)[:, 0] != 0).all()
+    # the head travels with an export, and so does the veto
+    reloaded = load(export(policy, tmp_path / "export"))
+    assert json.loads((tmp_path / "export" / "policy.json").read_text())["networks"]["leader"]["safety"] is True
+    assert (reloaded.act_batch(obs) == policy.act_batch(obs)).all()
+
+
+def test_the_learner_fits_the_safety_head_through_ray(cluster, tmp_path):
+    from formation.train import train
+
+    out = tmp_path / "run"
+    train(SMOKE, str(out), overrides={"train.safety_horizon": 2, "train.total_env_steps": 2000,
+                                      "eval.every_env_steps": 2000}, quiet=True)
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert any("learner/follower/safety_error" in row for row in rows)
+    policy = load(out)
+    assert policy.learned_veto and all(net.safety is not None for net in policy.networks.values())
+    # on states of fresh games, the head's verdicts beat the best constant guess of each joint move
+    rollout = GameRollout(policy.game, 64, seed=99)
+    rng = np.random.default_rng(0)
+    wrong, truth = [], []
+    for _ in range(8):
+        safe = surviving_first_moves_many([rollout.game.scenario(i) for i in range(64)], config=policy.game,
+                                          horizon=2)
+        bits = ((safe[:, None] >> np.arange(16, dtype=np.uint64)) & np.uint64(1)).astype(bool)
+        wrong.append(policy.learned_safe_moves(rollout.observations).reshape(64, 16) != bits)
+        truth.append(bits)
+        rollout.step(rng.choice([0, 0, 1, 2, 3], size=(64, 2)))
+    truth = np.concatenate(truth)
+    constant = np.minimum(truth.mean(0), 1 - truth.mean(0)).mean()
+    assert np.concatenate(wrong).mean() < 0.9 * constant, (np.concatenate(wrong).mean(), constant)
