@@ -159,7 +159,8 @@ class Policy:
 
     def act_batch(self, obs: np.ndarray) -> np.ndarray:
         """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares
-        (``formation.evaluate.play_greedy``'s ``act``); behind the shield where one is set."""
+        (``formation.evaluate.play_greedy``'s ``act``); behind the shield where one is set, and within the
+        joint moves the networks' safety heads judge safe where they have them (``learned_veto``)."""
         if self.shield is None and not self.learned_veto:
             return self.q_batch(obs).argmax(axis=-1)
         by_module = {m: self.q_values(obs, m) for m in sorted(set(self.agent_modules))}
