@@ -148,14 +148,30 @@ class Policy:
         twin.learned_veto = False
         return twin
 
+    def _outputs(self, obs: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+        """Each module's Q-values and the safe joint moves (N, 4, 4) its safety heads judge (their mean
+        probability above one half; None without heads), from one pass of each network: the layers without
+        weights run once for the networks that prepare alike."""
+        prepared: dict[tuple, torch.Tensor] = {}
+        q, safe = {}, []
+        with torch.no_grad():
+            x = torch.from_numpy(np.ascontiguousarray(obs))
+            for module in sorted(set(self.agent_modules)):
+                net = self.networks[module]
+                if net.prepare_key not in prepared:
+                    prepared[net.prepare_key] = net.prepare(x)
+                features = net.features(prepared[net.prepare_key])
+                q[module] = net.q_of(features).numpy()
+                if net.safety is not None:
+                    safe.append(torch.sigmoid(net.safety(features)))
+        if not safe:
+            return q, None
+        return q, (torch.stack(safe).mean(0) > 0.5).numpy().reshape(len(obs), N_ACTIONS, N_ACTIONS)
+
     def learned_safe_moves(self, obs: np.ndarray) -> np.ndarray:
         """(N, leader's move, follower's move) bool: the joint moves the networks' safety heads judge safe
         (their mean probability above one half)."""
-        heads = [net for net in self.networks.values() if net.safety is not None]
-        with torch.no_grad():
-            x = torch.from_numpy(np.ascontiguousarray(obs))
-            p = torch.stack([torch.sigmoid(net.safety_logits(net.prepare(x))) for net in heads]).mean(0)
-        return (p > 0.5).numpy().reshape(len(obs), N_ACTIONS, N_ACTIONS)
+        return self._outputs(obs)[1]
 
     def act_batch(self, obs: np.ndarray) -> np.ndarray:
         """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares
@@ -163,14 +179,14 @@ class Policy:
         joint moves the networks' safety heads judge safe where they have them (``learned_veto``)."""
         if self.shield is None and not self.learned_veto:
             return self.q_batch(obs).argmax(axis=-1)
-        by_module = {m: self.q_values(obs, m) for m in sorted(set(self.agent_modules))}
+        by_module, learned = self._outputs(obs)
         leader_q, follower_q = by_module[self.agent_modules[0]], by_module[self.agent_modules[1]]
         if follower_q.shape[-1] == N_ACTIONS:  # it does not answer the leader: the same values for every move
             follower_q = np.repeat(follower_q[:, None], N_ACTIONS, axis=1)
         follower_q = follower_q.reshape(len(obs), N_ACTIONS, N_ACTIONS)
         allowed = self.shield.allowed(obs) if self.shield is not None else np.ones(follower_q.shape, bool)
-        if self.learned_veto:  # within the shield's moves where they have some in common
-            both = allowed & self.learned_safe_moves(obs)
+        if self.learned_veto and learned is not None:  # within the shield's moves where they have some in common
+            both = allowed & learned
             allowed = np.where(both.any(axis=(1, 2), keepdims=True), both, allowed)
         return shielded_moves(leader_q, follower_q, allowed)
 
