@@ -107,8 +107,15 @@ def test_failure_restarts_reach_the_rollout_actors_and_show_in_the_metrics(clust
         while algo.counters["env_steps"] < 2000:
             result = algo.train()
         # half the restarts come from failures once there are some, half of the others are exploring starts
-        explore = result["explore"]
-        assert 0.3 < explore["start_failure"] < 0.6 and 0.15 < explore["start_exploring"] < 0.4, explore
+        # (the exact shares are tested on GameRollout itself). Here about 60 episodes end, so each share
+        # is a binomial estimate with a standard deviation of about 0.065: the bounds are 4 of those wide,
+        # and a plumbing fault (shares of 0 or 1) still fails.
+        explore, episodes = result["explore"], algo.counters["episodes"]
+        assert episodes >= 40, episodes
+        spread = 4 * (0.25 / episodes) ** 0.5
+        assert abs(explore["start_failure"] - 0.5) < spread, (episodes, explore)
+        assert 0.25 - spread < explore["start_exploring"] < 0.25 + spread, (episodes, explore)
+        assert explore["start_failure"] > 0 and explore["start_exploring"] > 0
     finally:
         algo.stop()
 
