@@ -89,9 +89,7 @@ def shortest_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: G
     """``shortest_first_moves`` of every scenario, the i-th with paths of at most ``max_steps[i]``
     steps (default: ``config.max_steps`` for all), from searches over all the scenarios at once:
     one per deadline they share, so numpy's cost per call is paid once for the lot."""
-    n_agents = 1 + config.n_followers
-    if N_ACTIONS ** n_agents > 64:
-        raise ConfigError(f"n_followers: {n_agents - 1} is not allowed here; allowed: 1 or 2")
+    n_agents = _mask_agents(config)
     parsed = [parse_scenario(s, config) for s in scenarios]
     found = _first_moves_many(parsed, config, max_steps, "mask")
     return [None if f is None else (f[0], [_split(j, n_agents) for j in range(N_ACTIONS ** n_agents)
@@ -127,30 +125,59 @@ def surviving_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: 
     formation breaks (or that reach the destination sooner, with every step up to it free of them),
     as ``(scenarios,)`` uint64 bit masks (bit ``joint index``, as ``shortest_first_moves``'s joint
     actions). No deadline: the leader need not head for the destination. At most two followers."""
-    n_agents = 1 + config.n_followers
-    if N_ACTIONS ** n_agents > 64:
-        raise ConfigError(f"n_followers: {n_agents - 1} is not allowed here; allowed: 1 or 2")
-    if not isinstance(horizon, int) or horizon < 1:
+    if not isinstance(horizon, int) or isinstance(horizon, bool) or horizon < 1:
         raise ConfigError(f"horizon: {horizon!r} is not allowed; allowed: an integer >= 1")
+    return _first_moves_surviving(scenarios, config, np.full(len(scenarios), horizon), deadline=False)
+
+
+def viable_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: GameConfig, slack: int = 0,
+                            max_steps: Sequence[int] | None = None) -> np.ndarray:
+    """For every scenario, the joint actions that start a successful path at most ``slack`` steps longer
+    than a shortest one (and of at most ``max_steps[i]`` steps; default ``config.max_steps``), as
+    ``surviving_first_moves_many``'s bit masks; 0 where no path is left. With ``slack`` 0, those that start
+    a shortest path (``shortest_first_moves_many``'s). At most two followers."""
+    _mask_agents(config)
+    if not isinstance(slack, int) or isinstance(slack, bool) or slack < 0:
+        raise ConfigError(f"slack: {slack!r} is not allowed; allowed: an integer >= 0")
     parsed = [parse_scenario(s, config) for s in scenarios]
-    safe = np.zeros(len(parsed), np.uint64)
+    limits = np.array([config.max_steps] * len(parsed) if max_steps is None else [int(m) for m in max_steps])
+    found = _first_moves_many(parsed, config, limits, "mask")
+    masks = np.array([0 if f is None else f[1] for f in found], np.uint64)
+    if slack == 0:
+        return masks
+    lost = np.array([f is None for f in found], bool)
+    deadlines = np.array([0 if f is None else min(f[0] + slack, limit) for f, limit in zip(found, limits)])
+    if not lost.all():
+        masks[~lost] = _first_moves_surviving([p for p, gone in zip(parsed, lost) if not gone], config,
+                                              deadlines[~lost], deadline=True)
+    return masks
+
+
+def _first_moves_surviving(scenarios: Sequence[dict | Scenario], config: GameConfig, steps: np.ndarray,
+                           deadline: bool) -> np.ndarray:
+    """The joint actions that start ``steps[i]`` steps free of failures or a success sooner, as bit
+    masks; with ``deadline`` the leader must reach the destination within ``steps[i]`` steps."""
+    n_agents = _mask_agents(config)
+    parsed = [parse_scenario(s, config) for s in scenarios]
+    safe = np.zeros(len(parsed), np.uint64)  # the result: per scenario, its surviving first joint actions
     if not parsed:
         return safe
     board = _Board(config)
-    zones = _ObstacleFuture(config, parsed, board).zones(horizon)
+    zones = _ObstacleFuture(config, parsed, board).zones(int(steps.max()))
     layer = np.array([[r * board.width + c for r, c in (p.leader, *p.followers)] for p in parsed], np.int32)
     owner = np.arange(len(parsed))
     firsts = None  # per state of the layer: the first joint actions of the paths reaching it (a bit mask)
     dedupe = _Deduplicator(board, n_agents, len(parsed))
     n_cells = board.height * board.width
-    for t in range(horizon):
-        parent, joint, cells = _successors(board, layer, zones[:, t + 1].reshape(-1), config.max_steps,
+    for t in range(int(steps.max())):
+        # with a deadline the leader must still reach the destination in time (then the last step lands on it)
+        steps_left = steps[owner] - t - 1 if deadline else config.max_steps
+        parent, joint, cells = _successors(board, layer, zones[:, t + 1].reshape(-1), steps_left,
                                            offset=owner * n_cells)
         owner = owner[parent]
         carried = firsts[parent] if firsts is not None else np.uint64(1) << joint.astype(np.uint64)
         done = cells[:, 0] == board.destination  # a success ends the episode: nothing after it can fail
-        if t == horizon - 1:
-            done[:] = True
+        done |= steps[owner] == t + 1
         np.bitwise_or.at(safe, owner[done], carried[done])
         cells, owner, carried = cells[~done], owner[~done], carried[~done]
         if len(cells) == 0:
@@ -160,6 +187,14 @@ def surviving_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: 
         np.bitwise_or.at(firsts, inverse, carried)
         layer, owner = cells[keep], owner[keep]
     return safe
+
+
+def _mask_agents(config: GameConfig) -> int:
+    """The team's size, where its joint actions fit a 64-bit mask (at most two followers)."""
+    n_agents = 1 + config.n_followers
+    if N_ACTIONS ** n_agents > 64:
+        raise ConfigError(f"n_followers: {n_agents - 1} is not allowed here; allowed: 1 or 2")
+    return n_agents
 
 
 def _first_found(search, parsed: Scenario, config: GameConfig):

@@ -272,7 +272,7 @@ def run_specs(run) -> tuple[dict[str, NetworkSpec], list[str]]:
               "channels": run.train.channels, **leader_window_config(run, shape)}
     agent_modules = module_of_agent(run)
     return {m: NetworkSpec.from_dict({**values, "answers_leader": answers_leader(run, m),
-                                      "safety": run.train.safety_horizon > 0})
+                                      "safety": run.train.safety_head})
             for m in sorted(set(agent_modules))}, agent_modules
 
 

@@ -111,3 +111,17 @@ def cluster():
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
+
+
+@pytest.fixture
+def rollout_actor():
+    """Makes a rollout actor (no Ray cluster needed) of the smoke config with the given overrides."""
+    pytest.importorskip("ray")
+    from formation.learn.algorithm import build_algorithm_config
+    from formation.learn.config import RunConfig
+    from formation.learn.rollout_actor import RolloutActor
+
+    def make(overrides: dict) -> RolloutActor:
+        return RolloutActor(config=build_algorithm_config(RunConfig.load("configs/smoke.yaml", overrides)))
+
+    return make

@@ -4,6 +4,7 @@ to the learner, which fits the head, and greedy play keeps to the joint moves th
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import numpy as np
@@ -18,15 +19,23 @@ from formation.learn.learner import SAFE, module_batches
 from formation.learn.qnet import DuelingQNetwork
 from formation.learn.replay import FrameReplay
 from formation.learn.rollout import GameRollout, concatenate
-from formation.planner import surviving_first_moves_many
+from formation.planner import (
+    lower_bound,
+    shortest_first_moves_many,
+    shortest_path,
+    surviving_first_moves_many,
+    viable_first_moves_many,
+)
 from formation.policy import NetworkSpec, Policy, export, load
 
 SMOKE = "configs/smoke.yaml"
+JOINTS = list(itertools.product(range(4), repeat=2))
 
 
 @pytest.mark.parametrize("key,value,message", [
-    ("train.safety_horizon", -1, "train.safety_horizon: -1 is not allowed; allowed: an integer >= 0"),
-    ("train.safety_horizon", "far", "train.safety_horizon: 'far' is not allowed; allowed: an integer >= 0"),
+    ("train.safety_horizon", -1, "train.safety_horizon: -1 is not allowed; allowed: an integer >= 0 or path"),
+    ("train.safety_horizon", "far", "train.safety_horizon: 'far' is not allowed; allowed: an integer >= 0 or path"),
+    ("train.safety_slack", 1, "train.safety_slack: 1 needs train.safety_horizon: path; allowed: 0"),
     ("train.safety_weight", -0.5, "train.safety_weight: -0.5 is not allowed; allowed: a number in [0.0, inf]"),
 ])
 def test_a_bad_safety_setting_is_one_line(key, value, message):
@@ -39,6 +48,59 @@ def test_a_safety_head_needs_one_follower():
     with pytest.raises(ConfigError, match=r"train.safety_horizon: 2 needs game.n_followers: 1 \(not 2\)"):
         RunConfig.load(SMOKE, {"train.safety_horizon": 2, "game.n_followers": 2, "game.width": 12,
                                "train.follower_answers_leader": False})
+
+
+def test_a_bad_slack_of_the_path_labels_is_one_line():
+    with pytest.raises(ConfigError) as err:
+        RunConfig.load(SMOKE, {"train.safety_horizon": "path", "train.safety_slack": -1})
+    assert str(err.value) == "train.safety_slack: -1 is not allowed; allowed: an integer >= 0"
+
+
+def viable_by_playing(config: GameConfig, scenario, joint: tuple[int, int], deadline: int) -> bool:
+    """Whether ``joint`` wins at once or leaves a successful path so that the whole takes at most ``deadline``
+    steps: the game plays the move, the planner searches from where it lands."""
+    game = BatchedGame(config, batch_size=1)
+    game.load([scenario])
+    game.step(np.array([joint]))
+    if game.done[0] or deadline == 1:
+        return bool(game.success[0])
+    return shortest_path(game.scenario(0), config=config.replace(max_steps=deadline - 1)) is not None
+
+
+def test_path_labels_are_the_moves_that_start_a_successful_path_within_the_slack():
+    config = GameConfig.from_setting(2, obs_type="grid", frame_stack=2, height=11, width=11, n_obstacles=2)
+    rollout = GameRollout(config, 12, seed=5)
+    rng = np.random.default_rng(5)
+    seen, differ = {0: 0, 1: 0}, 0
+    for _ in range(5):
+        scenarios = [rollout.game.scenario(i) for i in range(12)]
+        limits = [lower_bound(s, config) + 4 for s in scenarios]
+        shortest = shortest_first_moves_many(scenarios, config=config, max_steps=limits)
+        exact = viable_first_moves_many(scenarios, config=config, max_steps=limits)
+        looser = viable_first_moves_many(scenarios, config=config, slack=1, max_steps=limits)
+        assert ((looser & exact) == exact).all()  # a looser slack keeps every move of a shortest path
+        differ += int((looser != exact).sum())
+        for i, scenario in enumerate(scenarios):
+            if shortest[i] is None:  # no path within the limit: no move is viable
+                assert exact[i] == looser[i] == 0
+                continue
+            length, starts = shortest[i]
+            assert [j for j in JOINTS if (int(exact[i]) >> (4 * j[0] + j[1])) & 1] == starts
+            for joint in JOINTS:
+                bit = (int(looser[i]) >> (4 * joint[0] + joint[1])) & 1
+                assert bool(bit) == viable_by_playing(config, scenario, joint, min(length + 1, limits[i]))
+                seen[bit] += 1
+        rollout.step(rng.choice([0, 0, 1, 2, 3], size=(12, 2)))
+    assert seen[0] and seen[1] and differ
+
+
+def test_the_rollout_actor_labels_states_with_the_path_labels(rollout_actor):
+    actor = rollout_actor({"train.safety_horizon": "path", "train.safety_slack": 1})
+    game = actor.rollout.game
+    scenarios = [game.scenario(i) for i in range(game.batch_size)]
+    limits = [lower_bound(s, game.config) + actor.run.train.planner_slack for s in scenarios]
+    expected = viable_first_moves_many(scenarios, config=game.config, slack=1, max_steps=limits)
+    assert (actor._safe() == expected).all() and (expected != 0).any()
 
 
 def test_the_head_gives_16_logits_beside_unchanged_q_values():

@@ -45,16 +45,6 @@ def labelled_states(teacher, n):
             yield scenario, joint, steps_after(SMALL, scenario, joint)
 
 
-def rollout_actor(overrides: dict):
-    """A rollout actor (no Ray cluster needed) of the smoke config with ``overrides``."""
-    pytest.importorskip("ray")
-    from formation.learn.algorithm import build_algorithm_config
-    from formation.learn.config import RunConfig
-    from formation.learn.rollout_actor import RolloutActor
-
-    return RolloutActor(config=build_algorithm_config(RunConfig.load("configs/smoke.yaml", overrides)))
-
-
 def order_at(scenario):
     """The teacher's lockstep order for a state of SMALL (sideways towards the destination first)."""
     return lockstep_order(2, 2 if scenario.leader[1] < SMALL.destination[1] else 1)
@@ -253,7 +243,7 @@ def test_response_labels_answer_the_leaders_own_move_with_a_shortest_path_when_o
 
 
 @pytest.mark.parametrize("follower_labels", ["teacher", "response"])
-def test_rollout_actor_learns_from_response_labels_but_demonstrations_play_the_teachers(follower_labels):
+def test_rollout_actor_learns_from_response_labels_but_demonstrations_play_the_teachers(follower_labels, rollout_actor):
     actor = rollout_actor({"train.follower_labels": follower_labels,
                                                 "train.follower_answers_leader": False})
     game, teacher = actor.rollout.game, actor._teacher
@@ -306,7 +296,7 @@ def ended(scenario, joint) -> bool:
     return bool(game.done[0] and not game.success[0])
 
 
-def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_it_plays():
+def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_it_plays(rollout_actor):
     actor = rollout_actor({"train.follower_answers_leader": True, "train.epsilon_start": 0.5,
                                                 "train.epsilon_end": 0.5})
     game, teacher = actor.rollout.game, actor._teacher
@@ -337,7 +327,7 @@ def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_
         assert labels[i, 1] == (answer[1] if answer is not None else -1)
 
 
-def test_with_answer_every_leader_move_a_follower_learns_its_answer_to_each_move_the_leader_could_make():
+def test_with_answer_every_leader_move_a_follower_learns_its_answer_to_each_move_the_leader_could_make(rollout_actor):
     actor = rollout_actor({"train.follower_answers_leader": True,
                                                 "train.answer_every_leader_move": True})
     game, teacher = actor.rollout.game, actor._teacher
@@ -427,7 +417,7 @@ def test_accepted_joint_actions_are_those_that_start_a_shortest_path_and_hold_th
 
 
 @pytest.mark.parametrize("which", ["team", "toward"])
-def test_rollout_actor_stores_the_accepted_joint_actions_of_each_labelled_state(which):
+def test_rollout_actor_stores_the_accepted_joint_actions_of_each_labelled_state(which, rollout_actor):
     actor = rollout_actor({"train.follower_answers_leader": True,
                                                 "train.any_shortest_move": which})
     game, teacher = actor.rollout.game, actor._teacher

@@ -101,7 +101,7 @@ def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLMo
     obs_space, act_space = spaces_of(run)
     model_config = {"hidden": t.hidden, "channels": list(t.channels),
                     "epsilon": [(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)],
-                    "safety": t.safety_horizon > 0, **leader_window_config(run, obs_space.shape)}
+                    "safety": t.safety_head, **leader_window_config(run, obs_space.shape)}
     return {m: RLModuleSpec(module_class=DuelingQModule, observation_space=obs_space,
                             action_space=gym.spaces.Discrete(16) if answers_leader(run, m) else act_space,
                             model_config={**model_config, "answers_leader": answers_leader(run, m)},
@@ -311,7 +311,7 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         agents = module_of_agent(self.run)
         answering = [m for m in set(agents) if answers_leader(self.run, m)]
         mirror, seed, any_shortest = self.run.train.mirror, self.run.train.seed, self.run.train.any_shortest_move
-        safety = self.run.train.safety_horizon > 0
+        safety = self.run.train.safety_head
         self.learner_group.foreach_learner(
             lambda learner: learner.set_replays(replays, agents, answering, mirror, seed, any_shortest, safety))
 

@@ -26,6 +26,7 @@ from formation.game.mirror import mirror_symmetric
 from formation.learn.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
+SAFETY_PATH = "path"  # train.safety_horizon: the head learns which joint moves leave a successful path
 ANY_SHORTEST_MOVE = ("none", "leader", "toward", "team")  # train.any_shortest_move: whose margin accepts more
 EXPLORATIONS = ("independent", "joint")
 LABEL_ORDERS = ("planner", "lockstep", "toward", "safe", "widest")
@@ -135,14 +136,22 @@ class TrainSettings:
     # free of collisions and formation breaks (the planner on the game's true state labels every visited
     # state, as the teacher labels it; formation.planner.surviving_first_moves_many), with a loss weighted by
     # safety_weight; greedy play then keeps to the joint moves that head judges safe (formation.policy). 0: none.
+    # "path": the joint moves that start a successful path at most safety_slack steps longer than a shortest one,
+    # within the teacher's deadline (the lower bound + planner_slack; formation.planner.viable_first_moves_many).
     # Needs one follower
-    safety_horizon: int = 0
+    safety_horizon: int | str = 0
+    safety_slack: int = 0
     safety_weight: float = 1.0
     grad_clip: float = 10.0
     total_env_steps: int = 300_000
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
     path: str = "formation"  # "formation": rollout actors -> replay actor -> learner; "stock": RLlib's DQN
     seed: int = 0
+
+    @property
+    def safety_head(self) -> bool:
+        """Whether the networks learn a safety head (``safety_horizon`` not 0)."""
+        return self.safety_horizon != 0
 
     def __post_init__(self) -> None:
         _number(self, "gamma", 0.0, 1.0)
@@ -168,7 +177,12 @@ class TrainSettings:
             _integer(self, name, 1)
         _integer(self, "learning_starts", 0)
         _integer(self, "row_scan", 0)
-        _integer(self, "safety_horizon", 0)
+        if self.safety_horizon != SAFETY_PATH:
+            _integer(self, "safety_horizon", 0, also=SAFETY_PATH)
+        _integer(self, "safety_slack", 0)
+        if self.safety_slack and self.safety_horizon != SAFETY_PATH:
+            raise ConfigError(f"train.safety_slack: {self.safety_slack} needs train.safety_horizon: {SAFETY_PATH}; "
+                              "allowed: 0")
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
                      "tolerant_formation", "obstacle_forecast", "follower_answers_leader", "mirror",
@@ -409,10 +423,11 @@ def apply_overrides(values: dict[str, Any], overrides: dict[str, Any]) -> dict[s
     return out
 
 
-def _integer(obj, name: str, low: int, section: str = "train") -> None:
+def _integer(obj, name: str, low: int, section: str = "train", also: str | None = None) -> None:
     value = getattr(obj, name)
     if not isinstance(value, int) or isinstance(value, bool) or value < low:
-        raise ConfigError(f"{section}.{name}: {value!r} is not allowed; allowed: an integer >= {low}")
+        allowed = f"an integer >= {low}" + (f" or {also}" if also else "")
+        raise ConfigError(f"{section}.{name}: {value!r} is not allowed; allowed: {allowed}")
 
 
 def _number(obj, name: str, low: float, high: float, section: str = "train", low_open: bool = False,

@@ -20,12 +20,12 @@ from ray.rllib.utils.checkpoints import Checkpointable
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_NO
 
 from formation.game import MOVES
-from formation.learn.config import RunConfig, TrainSettings
+from formation.learn.config import SAFETY_PATH, RunConfig, TrainSettings
 from formation.learn.qnet import q_values_of, team_q_values
 from formation.learn.rollout import GameRollout, concatenate
 from formation.learn.shaping import Potential
 from formation.learn.teacher import Teacher
-from formation.planner import surviving_first_moves_many
+from formation.planner import lower_bound, surviving_first_moves_many, viable_first_moves_many
 
 
 def spaces_of(run: RunConfig) -> tuple[gym.spaces.Box, gym.spaces.Discrete]:
@@ -138,10 +138,18 @@ class RolloutActor(EnvRunner, Checkpointable):
 
     def _safe(self) -> np.ndarray:
         """``train.safety_horizon``: the joint actions that start that many steps free of collisions and
-        formation breaks from every game's present state, as bit masks (the planner on the true state)."""
-        game = self.rollout.game
-        return surviving_first_moves_many([game.scenario(i) for i in range(game.batch_size)], config=game.config,
-                                          horizon=self.run.train.safety_horizon)
+        formation breaks from every game's present state, as bit masks (the planner on the true state);
+        with "path", those that start a successful path at most ``train.safety_slack`` steps longer than a
+        shortest one, within the teacher's deadline (the lower bound + ``planner_slack`` steps, and the
+        episode's steps left)."""
+        game, t = self.rollout.game, self.run.train
+        scenarios = [game.scenario(i) for i in range(game.batch_size)]
+        if t.safety_horizon != SAFETY_PATH:
+            return surviving_first_moves_many(scenarios, config=game.config, horizon=t.safety_horizon)
+        steps_left = game.config.max_steps - game.steps
+        limits = [min(lower_bound(s, game.config) + t.planner_slack, int(left))
+                  for s, left in zip(scenarios, steps_left)]
+        return viable_first_moves_many(scenarios, config=game.config, slack=t.safety_slack, max_steps=limits)
 
     def _accepted(self, joints: np.ndarray) -> np.ndarray:
         """``train.any_shortest_move``: the joint actions that start a shortest path from every game's present
@@ -224,7 +232,7 @@ class RolloutActor(EnvRunner, Checkpointable):
                 labels, answers = self._labels(joints, greedy, actions)
             if run.train.any_shortest_move != "none":
                 accepted = self._accepted(joints)
-            safe = self._safe() if run.train.safety_horizon else None
+            safe = self._safe() if run.train.safety_head else None
             chunks.append(rollout.step(actions, labels=labels, answers=answers, accepted=accepted, safe=safe))
             if not run.train.dagger:
                 for i in np.flatnonzero(rollout.game.steps[: self._demo_games] == 0):
