@@ -94,13 +94,17 @@ def test_path_labels_are_the_moves_that_start_a_successful_path_within_the_slack
     assert seen[0] and seen[1] and differ
 
 
-def test_the_rollout_actor_labels_states_with_the_path_labels(rollout_actor):
-    actor = rollout_actor({"train.safety_horizon": "path", "train.safety_slack": 1})
+@pytest.mark.parametrize("slack", [0, 1])
+def test_the_rollout_actor_labels_states_with_the_path_labels(rollout_actor, slack):
+    actor = rollout_actor({"train.safety_horizon": "path", "train.safety_slack": slack})
     game = actor.rollout.game
-    scenarios = [game.scenario(i) for i in range(game.batch_size)]
-    limits = [lower_bound(s, game.config) + actor.run.train.planner_slack for s in scenarios]
-    expected = viable_first_moves_many(scenarios, config=game.config, slack=1, max_steps=limits)
-    assert (actor._safe() == expected).all() and (expected != 0).any()
+    rng = np.random.default_rng(slack)
+    for _ in range(3):
+        scenarios = [game.scenario(i) for i in range(game.batch_size)]
+        limits = [lower_bound(s, game.config) + actor.run.train.planner_slack for s in scenarios]
+        expected = viable_first_moves_many(scenarios, config=game.config, slack=slack, max_steps=limits)
+        assert (actor._safe() == expected).all() and (expected != 0).any()
+        actor.rollout.step(rng.choice([0, 0, 1, 2, 3], size=(game.batch_size, 2)))
 
 
 def test_the_head_gives_16_logits_beside_unchanged_q_values():

@@ -123,6 +123,14 @@ class Teacher:
             starts = {j for j in starts if abs(self._landing(scenario.leader, j[0])[1] - column) <= abs(now - column)}
         return joint_mask(starts | {joint})
 
+    def shortest_starts(self, scenarios: list[Scenario]) -> np.ndarray:
+        """The joint actions that start a shortest path within the slack, as ``(scenarios,)`` bit masks (0 where
+        no path is left; one follower), from the searches ``labels`` ran on the same states where it did."""
+        if self.config.n_followers != 1:
+            raise ValueError(f"Teacher.shortest_starts: one follower only, not {self.config.n_followers}")
+        self._find_starts(scenarios)
+        return np.array([joint_mask(self._starts(s) or ()) for s in scenarios], np.uint64)
+
     def _shortest_with(self, scenario: Scenario, leader_move: int) -> tuple[int, ...] | None:
         """The first joint action in the order with ``leader_move`` that starts a shortest path; None if none does."""
         starts = self._starts(scenario) or set()
