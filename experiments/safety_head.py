@@ -4,9 +4,10 @@ the heads' verdicts on the 16 joint moves agree with the planner's on the states
 
     .venv/bin/python experiments/safety_head.py runs/s2_safety4 [--horizon 4] [--episodes 1000] [--seed 2000000]
 
-``--horizon``: the steps the verdicts are checked over (default: the run's ``train.safety_horizon``, or 4
-for an export). Prints both summaries, then the verdicts' errors: unsafe moves judged safe, safe moves
-judged unsafe, and the share of states where the team's own move was unsafe.
+``--horizon``: the steps the verdicts are checked over, or ``path`` (with the run's ``train.safety_slack``
+and ``planner_slack``); default: the run's ``train.safety_horizon``, or 4 for an export. Prints both
+summaries, then the verdicts' errors: unsafe moves judged safe, safe moves judged unsafe, and the share
+of states where the team's own move was unsafe.
 """
 
 from __future__ import annotations
@@ -18,15 +19,15 @@ import numpy as np
 import torch
 
 from formation.evaluate import play_greedy
-from formation.learn.config import RunConfig
-from formation.planner import surviving_first_moves_many
+from formation.learn.config import SAFETY_PATH, RunConfig, TrainSettings
+from formation.learn.teacher import safety_labels
 from formation.policy import load
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("policy", type=Path, help="a run folder or an exported policy folder")
-    parser.add_argument("--horizon", type=int)
+    parser.add_argument("--horizon", type=lambda v: v if v == SAFETY_PATH else int(v))
     parser.add_argument("--episodes", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=2_000_000)
     args = parser.parse_args()
@@ -34,10 +35,9 @@ def main() -> None:
     policy = load(args.policy)
     if not policy.learned_veto:
         raise SystemExit(f"{args.policy}: its networks have no safety head (train.safety_horizon: 0)")
-    horizon = args.horizon
-    if horizon is None:
-        saved = args.policy / "config.yaml"
-        horizon = RunConfig.load_saved(saved).train.safety_horizon if saved.is_file() else 4
+    saved = args.policy / "config.yaml"
+    train = RunConfig.load_saved(saved).train if saved.is_file() else TrainSettings(safety_horizon=4)
+    horizon = train.safety_horizon if args.horizon is None else args.horizon
     config = policy.game
     counts = {"unsafe judged safe": 0, "unsafe": 0, "safe judged unsafe": 0, "safe": 0, "own move unsafe": 0,
               "states": 0}
@@ -47,7 +47,8 @@ def main() -> None:
         idx = np.flatnonzero(live)
         if not len(idx):
             return
-        truth = surviving_first_moves_many([game.scenario(int(i)) for i in idx], config=config, horizon=horizon)
+        truth = safety_labels([game.scenario(int(i)) for i in idx], game.steps[idx], config, horizon,
+                              train.safety_slack if horizon == SAFETY_PATH else 0, train.planner_slack)
         truth = ((truth[:, None] >> np.arange(16, dtype=np.uint64)) & bit).astype(bool)
         judged = policy.learned_safe_moves(seen["obs"][idx]).reshape(-1, 16)
         counts["unsafe judged safe"] += int((judged & ~truth).sum())

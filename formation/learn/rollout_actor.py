@@ -20,12 +20,11 @@ from ray.rllib.utils.checkpoints import Checkpointable
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_NO
 
 from formation.game import MOVES
-from formation.learn.config import SAFETY_PATH, RunConfig, TrainSettings
+from formation.learn.config import RunConfig, TrainSettings
 from formation.learn.qnet import q_values_of, team_q_values
 from formation.learn.rollout import GameRollout, concatenate
 from formation.learn.shaping import Potential
-from formation.learn.teacher import Teacher
-from formation.planner import lower_bound, surviving_first_moves_many, viable_first_moves_many
+from formation.learn.teacher import Teacher, safety_labels
 
 
 def spaces_of(run: RunConfig) -> tuple[gym.spaces.Box, gym.spaces.Discrete]:
@@ -137,20 +136,11 @@ class RolloutActor(EnvRunner, Checkpointable):
         return joints
 
     def _safe(self) -> np.ndarray:
-        """``train.safety_horizon``: the joint actions that start that many steps free of collisions and
-        formation breaks from every game's present state, as bit masks (the planner on the true state);
-        with "path", those that start a successful path at most ``train.safety_slack`` steps longer than a
-        shortest one, within the teacher's deadline (the lower bound + ``planner_slack`` steps, and the
-        episode's steps left)."""
+        """``train.safety_horizon``: what the safety head learns of every game's present state
+        (``teacher.safety_labels``)."""
         game, t = self.rollout.game, self.run.train
-        scenarios = [game.scenario(i) for i in range(game.batch_size)]
-        if t.safety_horizon != SAFETY_PATH:
-            return surviving_first_moves_many(scenarios, config=game.config, horizon=t.safety_horizon)
-        limits = np.array([lower_bound(s, game.config) + t.planner_slack for s in scenarios])
-        capped = np.minimum(limits, game.config.max_steps - game.steps)
-        if t.safety_slack == 0 and self._teacher is not None and (capped == limits).all():
-            return self._teacher.shortest_starts(scenarios)  # the searches its labels ran
-        return viable_first_moves_many(scenarios, config=game.config, slack=t.safety_slack, max_steps=capped)
+        return safety_labels([game.scenario(i) for i in range(game.batch_size)], game.steps, game.config,
+                             t.safety_horizon, t.safety_slack, t.planner_slack, self._teacher)
 
     def _accepted(self, joints: np.ndarray) -> np.ndarray:
         """``train.any_shortest_move``: the joint actions that start a shortest path from every game's present

@@ -17,7 +17,16 @@ import numpy as np
 from formation.config import GameConfig, formation_broken_by
 from formation.game import MOVES, BatchedGame, Scenario
 from formation.game.core import joint_mask
-from formation.planner import lower_bound, paths_exist, shortest_first_moves_many, shortest_path, shortest_path_counts
+from formation.learn.config import SAFETY_PATH
+from formation.planner import (
+    lower_bound,
+    paths_exist,
+    shortest_first_moves_many,
+    shortest_path,
+    shortest_path_counts,
+    surviving_first_moves_many,
+    viable_first_moves_many,
+)
 
 # robust first-step labels try every velocity of this many obstacles, those nearest the leader's row;
 # the others count as known (4 velocities each: trying all 3 of setting 1 costs 64 planner calls a label)
@@ -296,3 +305,20 @@ class Teacher:
         if max_steps not in self._capped:
             self._capped[max_steps] = self.config.replace(max_steps=max_steps)
         return self._capped[max_steps]
+
+
+def safety_labels(scenarios: list[Scenario], steps: np.ndarray, config: GameConfig, horizon: int | str, slack: int,
+                  planner_slack: int, teacher: Teacher | None = None) -> np.ndarray:
+    """What a safety head learns (``train.safety_horizon``) of states ``scenarios``, ``steps[i]`` steps into
+    their episodes, as ``(scenarios,)`` bit masks of joint actions (the planner on the true state): those
+    that start ``horizon`` steps free of collisions and formation breaks; with ``horizon`` "path", those that
+    start a successful path at most ``slack`` steps longer than a shortest one, within the teacher's deadline
+    (the lower bound + ``planner_slack`` steps, and the episode's steps left). With slack 0, ``teacher`` (of
+    the same ``planner_slack``), where given, answers from the searches its labels ran."""
+    if horizon != SAFETY_PATH:
+        return surviving_first_moves_many(scenarios, config=config, horizon=horizon)
+    limits = np.array([lower_bound(s, config) + planner_slack for s in scenarios], np.int64)
+    capped = np.minimum(limits, config.max_steps - np.asarray(steps))
+    if slack == 0 and teacher is not None and (capped == limits).all():
+        return teacher.shortest_starts(scenarios)
+    return viable_first_moves_many(scenarios, config=config, slack=slack, max_steps=capped)
