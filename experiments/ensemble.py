@@ -1,7 +1,9 @@
 """Greedy success of several trained teams acting together: each agent takes the action with the
 highest Q-value averaged over the teams' networks (run folders or exports of the same game). A
 follower that answers the leader reads, in every team's averaged network, the row of the move the
-averaged leader makes.
+averaged leader makes. Teams with safety heads (``train.safety_horizon``) keep, as one team does, to
+the joint moves whose safety probability, averaged over all their heads, is above one half
+(``--no-veto``: whatever the heads say).
 
     .venv/bin/python experiments/ensemble.py runs/s1_cells runs/s1_pix_win --episodes 1000 --seed 2000000
 
@@ -16,7 +18,7 @@ import numpy as np
 
 from formation.evaluate import play_greedy
 from formation.learn.qnet import team_q_values
-from formation.policy import load
+from formation.policy import greedy_within, load
 
 
 def main() -> None:
@@ -24,6 +26,7 @@ def main() -> None:
     parser.add_argument("policies", nargs="+", help="run folders or `formation export` folders")
     parser.add_argument("--episodes", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=2_000_000)
+    parser.add_argument("--no-veto", action="store_true", help="ignore the teams' safety heads")
     args = parser.parse_args()
     teams = [load(path) for path in args.policies]
     game = teams[0].game
@@ -34,12 +37,22 @@ def main() -> None:
     if any(team.agent_modules != modules for team in teams):
         parser.error("policies: all must map the agents to the same modules")
 
+    veto = not args.no_veto and any(team.learned_veto for team in teams)
+    if veto and len(modules) != 2:
+        parser.error("policies: the safety heads' veto needs one follower")
+
     def act(obs: np.ndarray) -> np.ndarray:
-        q = {m: np.mean([team.q_values(obs, m) for team in teams], axis=0) for m in sorted(set(modules))}
-        return team_q_values(q, modules).argmax(axis=-1)
+        if not veto:
+            q = {m: np.mean([team.q_values(obs, m) for team in teams], axis=0) for m in sorted(set(modules))}
+            return team_q_values(q, modules).argmax(axis=-1)
+        outputs = [team.outputs(obs) for team in teams]
+        q = {m: np.mean([by_module[m] for by_module, _ in outputs], axis=0) for m in sorted(set(modules))}
+        safe = np.mean([p for _, p in outputs if p is not None], axis=0)
+        return greedy_within(q, modules, None, safe > 0.5)
 
     summary = play_greedy(game, act, args.episodes, args.seed)["summary"]
-    print(f"{' + '.join(args.policies)}: {args.episodes} episodes (seed {args.seed})")
+    print(f"{' + '.join(args.policies)}: {args.episodes} episodes (seed {args.seed}), "
+          f"{'with' if veto else 'without'} the heads' veto")
     for key in ("success", "leader_collision", "follower_collision", "formation_broken", "timeout"):
         print(f"{key:<20} {summary[key]:.1%}")
 

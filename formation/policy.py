@@ -148,10 +148,10 @@ class Policy:
         twin.learned_veto = False
         return twin
 
-    def _outputs(self, obs: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
-        """Each module's Q-values and the safe joint moves (N, 4, 4) its safety heads judge (their mean
-        probability above one half; None without heads), from one pass of each network: the layers without
-        weights run once for the networks that prepare alike."""
+    def outputs(self, obs: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+        """Each module's Q-values and the probability (N, 4, 4) its safety heads give each joint move of being
+        safe (their mean; None without heads), from one pass of each network: the layers without weights run
+        once for the networks that prepare alike."""
         prepared: dict[tuple, torch.Tensor] = {}
         q, safe = {}, []
         with torch.no_grad():
@@ -166,12 +166,12 @@ class Policy:
                     safe.append(torch.sigmoid(net.safety(features)))
         if not safe:
             return q, None
-        return q, (torch.stack(safe).mean(0) > 0.5).numpy().reshape(len(obs), N_ACTIONS, N_ACTIONS)
+        return q, torch.stack(safe).mean(0).numpy().reshape(len(obs), N_ACTIONS, N_ACTIONS)
 
     def learned_safe_moves(self, obs: np.ndarray) -> np.ndarray:
         """(N, leader's move, follower's move) bool: the joint moves the networks' safety heads judge safe
         (their mean probability above one half)."""
-        return self._outputs(obs)[1]
+        return self.outputs(obs)[1] > 0.5
 
     def act_batch(self, obs: np.ndarray) -> np.ndarray:
         """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares
@@ -179,16 +179,10 @@ class Policy:
         joint moves the networks' safety heads judge safe where they have them (``learned_veto``)."""
         if self.shield is None and not self.learned_veto:
             return self.q_batch(obs).argmax(axis=-1)
-        by_module, learned = self._outputs(obs)
-        leader_q, follower_q = by_module[self.agent_modules[0]], by_module[self.agent_modules[1]]
-        if follower_q.shape[-1] == N_ACTIONS:  # it does not answer the leader: the same values for every move
-            follower_q = np.repeat(follower_q[:, None], N_ACTIONS, axis=1)
-        follower_q = follower_q.reshape(len(obs), N_ACTIONS, N_ACTIONS)
-        allowed = self.shield.allowed(obs) if self.shield is not None else np.ones(follower_q.shape, bool)
-        if self.learned_veto and learned is not None:  # within the shield's moves where they have some in common
-            both = allowed & learned
-            allowed = np.where(both.any(axis=(1, 2), keepdims=True), both, allowed)
-        return shielded_moves(leader_q, follower_q, allowed)
+        by_module, safe_probability = self.outputs(obs)
+        allowed = self.shield.allowed(obs) if self.shield is not None else None
+        learned = safe_probability > 0.5 if self.learned_veto and safe_probability is not None else None
+        return greedy_within(by_module, self.agent_modules, allowed, learned)
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, int]:
         """Greedy actions of the agents in ``observations`` (per-agent observations as the PettingZoo
@@ -384,3 +378,20 @@ def _with_weights(spec: NetworkSpec, weights: Any, where: Path) -> DuelingQNetwo
             from None
     net.eval()
     return net
+
+
+def greedy_within(by_module: dict[str, np.ndarray], agent_modules: list[str], allowed: np.ndarray | None,
+                  learned: np.ndarray | None) -> np.ndarray:
+    """A leader's and a follower's greedy joint moves (N, 2) from their modules' Q-values ``by_module`` (a
+    follower's that answers the leader: a row per leader move), within the joint moves (N, 4, 4) ``allowed``
+    (a shield's; None: all) and, where they have some in common with it, those ``learned`` (a safety head's)."""
+    leader_q, follower_q = by_module[agent_modules[0]], by_module[agent_modules[1]]
+    if follower_q.shape[-1] == N_ACTIONS:  # it does not answer the leader: the same values for every move
+        follower_q = np.repeat(follower_q[:, None], N_ACTIONS, axis=1)
+    follower_q = follower_q.reshape(len(leader_q), N_ACTIONS, N_ACTIONS)
+    if allowed is None:
+        allowed = np.ones(follower_q.shape, bool)
+    if learned is not None:  # within the shield's moves where they have some in common
+        both = allowed & learned
+        allowed = np.where(both.any(axis=(1, 2), keepdims=True), both, allowed)
+    return shielded_moves(leader_q, follower_q, allowed)
