@@ -95,10 +95,9 @@ def test_without_failure_restarts_a_rollout_plays_as_before():
         np.testing.assert_array_equal(a.frames, b.frames)
 
 
-def test_failure_restarts_must_be_a_fraction_and_reach_the_rollout_actors():
+def test_failure_restarts_must_be_a_fraction_and_reach_the_rollout_actors(rollout_actor):
     with pytest.raises(ConfigError, match=r"^train\.failure_restarts: 1\.5 is not allowed; allowed: a number in "
                                           r"\[0\.0, 1\.0\]$"):
         RunConfig.load("configs/setting2.yaml", {"train.failure_restarts": 1.5})
-    from tests.test_teacher import rollout_actor
 
     assert rollout_actor({"train.failure_restarts": 0.25}).rollout.failure_restarts == 0.25
