@@ -168,10 +168,11 @@ class Policy:
             return q, None
         return q, torch.stack(safe).mean(0).numpy().reshape(len(obs), N_ACTIONS, N_ACTIONS)
 
-    def learned_safe_moves(self, obs: np.ndarray) -> np.ndarray:
+    def learned_safe_moves(self, obs: np.ndarray) -> np.ndarray | None:
         """(N, leader's move, follower's move) bool: the joint moves the networks' safety heads judge safe
-        (their mean probability above one half)."""
-        return self.outputs(obs)[1] > 0.5
+        (their mean probability above one half); None without heads."""
+        safe_probability = self.outputs(obs)[1]
+        return None if safe_probability is None else safe_probability > 0.5
 
     def act_batch(self, obs: np.ndarray) -> np.ndarray:
         """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares

@@ -26,7 +26,7 @@ from formation.planner import (
     surviving_first_moves_many,
     viable_first_moves_many,
 )
-from formation.policy import NetworkSpec, Policy, export, load
+from formation.policy import NetworkSpec, Policy, export, greedy_within, load
 
 SMOKE = "configs/smoke.yaml"
 JOINTS = list(itertools.product(range(4), repeat=2))
@@ -175,6 +175,22 @@ def test_greedy_play_keeps_to_the_moves_the_head_judges_safe(tmp_path):
     reloaded = load(export(policy, tmp_path / "export"))
     assert json.loads((tmp_path / "export" / "policy.json").read_text())["networks"]["leader"]["safety"] is True
     assert (reloaded.act_batch(obs) == policy.act_batch(obs)).all()
+
+
+def test_without_heads_nothing_is_vetoed_and_greedy_within_all_moves_is_plain_greedy():
+    config = GameConfig.from_setting(2, obs_type="grid", frame_stack=2, height=9, width=9, n_obstacles=2)
+    spec = NetworkSpec(obs_shape=(9, 9, 8), high=1.0, hidden=16, channels=(4, 8, 8))
+    follower_spec = NetworkSpec(**{**spec.__dict__, "answers_leader": True})
+    torch.manual_seed(1)
+    networks = {"leader": spec.build(), "follower": follower_spec.build()}
+    policy = Policy(config, networks, {"leader": spec, "follower": follower_spec}, ["leader", "follower"], "test")
+    game = BatchedGame(config, batch_size=32, seed=1)
+    game.reset()
+    obs = Observer(game).observe(np.ones(32, bool))
+    assert not policy.learned_veto and policy.learned_safe_moves(obs) is None
+    by_module, safe_probability = policy.outputs(obs)
+    assert safe_probability is None
+    assert (greedy_within(by_module, policy.agent_modules, None, None) == policy.act_batch(obs)).all()
 
 
 def test_the_learner_fits_the_safety_head_through_ray(cluster, tmp_path):
