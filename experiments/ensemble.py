@@ -43,6 +43,8 @@ def main() -> None:
     veto = not args.no_veto and any(team.learned_veto for team in teams)
     if veto and len(modules) != 2:
         parser.error("policies: the safety heads' veto needs one follower")
+    if args.combine == "strict" and not veto:
+        parser.error("--combine strict: needs teams with safety heads, and no --no-veto")
 
     def mean_act(obs: np.ndarray) -> np.ndarray:
         if not veto:

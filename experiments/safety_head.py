@@ -48,7 +48,7 @@ def main() -> None:
         if not len(idx):
             return
         truth = safety_labels([game.scenario(int(i)) for i in idx], game.steps[idx], config, horizon,
-                              train.safety_slack if horizon == SAFETY_PATH else 0, train.planner_slack)
+                              train.safety_slack, train.planner_slack)
         truth = ((truth[:, None] >> np.arange(16, dtype=np.uint64)) & bit).astype(bool)
         judged = policy.learned_safe_moves(seen["obs"][idx]).reshape(-1, 16)
         counts["unsafe judged safe"] += int((judged & ~truth).sum())
@@ -70,7 +70,8 @@ def main() -> None:
         played = play_greedy(config, team_act, args.episodes, args.seed, watch=watch)
         s = {k: v for k, v in played["summary"].items() if k not in ("return_mean", "success_ci95")}
         print(f"{args.policy} {name}: {s}", flush=True)
-    print(f"verdicts over {horizon} steps on {counts['states']} states of the vetoed play: "
+    over = "on keeping a path" if horizon == SAFETY_PATH else f"over {horizon} steps"
+    print(f"verdicts {over} on {counts['states']} states of the vetoed play: "
           f"unsafe judged safe {counts['unsafe judged safe']}/{counts['unsafe']}, "
           f"safe judged unsafe {counts['safe judged unsafe']}/{counts['safe']}, "
           f"the team's move unsafe in {counts['own move unsafe']}")
