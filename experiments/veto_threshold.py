@@ -2,7 +2,7 @@
 (``train.safety_horizon``) played greedily within the joint moves whose mean safe probability is above each
 threshold (``formation evaluate`` uses one half), on the same scenarios.
 
-    .venv/bin/python experiments/veto_threshold.py policies/setting4 [--thresholds 0.5 0.7 0.9] [--episodes 1000] [--seed 3000000]
+    .venv/bin/python experiments/veto_threshold.py policies/setting4 [--thresholds 0.5 0.7 0.9] [--seed 3000000]
 
 Where no joint move is above a threshold, the team keeps to those above one half, and where none is, to
 all (as ``formation evaluate``). Prints one summary per threshold.

@@ -20,7 +20,7 @@ def test_a_shipped_policy_plays_its_setting_from_pixels_as_reported(setting):
     policy = load(folder)
     assert policy.game.setting == setting
     assert policy.game.obs_type == "pixels" and policy.game.frame_stack == 4
-    assert sum(f.stat().st_size for f in folder.iterdir()) < 6_000_000  # a few MB at most (settings 2-4, with their safety heads: 5.0)
+    assert sum(f.stat().st_size for f in folder.iterdir()) < 6_000_000  # a few MB (settings 2-4 with safety heads: 5.0)
     reported = json.loads((REPO / "docs" / "results" / f"setting{setting}.json").read_text())
     assert reported["episodes"] == 1000 and reported["env_steps"] == policy.env_steps
     summary = play_greedy(policy.game, policy.act_batch, EPISODES, SEED)["summary"]
