@@ -1,5 +1,7 @@
 """A replay sample of all agents becomes one batch per module; shared followers add rows."""
 
+from types import SimpleNamespace
+
 import numpy as np
 
 from formation.learn.learner import ACCEPTED, DISCOUNTS, LABELS, RETURNS, module_batches
@@ -236,3 +238,40 @@ def test_threaded_module_updates_equal_rllibs_serial_update(monkeypatch):
     # the layers without weights read the observations and the next ones once for both modules on the
     # threaded path; RLlib's serial path runs each module's own: once per module and kind of observation
     assert prepared == {True: 2, False: 4}
+
+
+def test_a_safety_head_adds_its_loss_and_with_safety_priority_its_wrong_verdicts_to_the_priority():
+    import torch
+
+    from formation.learn.learner import SAFE, WEIGHTS
+    from formation.learn.module import SAFETY_LOGITS
+
+    q = torch.zeros(2, 4)
+    safe = torch.zeros(2, 16, dtype=torch.bool)
+    safe[0, :3] = True  # three moves safe in the first state, none in the second
+    logits = torch.full((2, 16), -2.0)
+    logits[0, :5] = 2.0  # the head judges moves 3 and 4 of the first state safe too: two wrong verdicts
+    batch = {"actions": torch.tensor([0, 1]), "n_step_returns": torch.tensor([1.0, -0.5]),
+             "n_step_discounts": torch.zeros(2), "teacher_labels": torch.tensor([-1, -1]), SAFE: safe,
+             WEIGHTS: torch.ones(2)}
+
+    def loss_and_priority(safety_priority):
+        from formation.learn.learner import FormationLearner
+
+        fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(2, 4), "qf_target_next_preds": torch.zeros(2, 4),
+               SAFETY_LOGITS: logits}
+        learner = FormationLearner.__new__(FormationLearner)
+        learner._priority, learner._stats = {}, {}
+        config = SimpleNamespace(margin=0.0, safety_weight=1.0, safety_priority=safety_priority)
+        loss = learner.compute_loss_for_module(module_id="leader", config=config, batch=batch, fwd_out=fwd)
+        return loss, learner._priority["leader"], learner._stats["leader"]
+
+    loss, priority, stats = loss_and_priority(0.0)
+    td = torch.nn.functional.smooth_l1_loss(torch.zeros(2), torch.tensor([1.0, -0.5]))
+    bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, safe.float())
+    torch.testing.assert_close(loss, td + bce)
+    np.testing.assert_allclose(priority, [1.0, 0.5])  # the TD errors alone
+    assert stats["safety_error"] == 2 / 32
+    loss_with, priority, _ = loss_and_priority(0.25)
+    torch.testing.assert_close(loss_with, loss)  # the loss is the same; only what the replay revisits changes
+    np.testing.assert_allclose(priority, [1.0 + 0.25 * 2, 0.5])

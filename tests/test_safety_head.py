@@ -37,6 +37,9 @@ JOINTS = list(itertools.product(range(4), repeat=2))
     ("train.safety_horizon", "far", "train.safety_horizon: 'far' is not allowed; allowed: an integer >= 0 or path"),
     ("train.safety_slack", 1, "train.safety_slack: 1 needs train.safety_horizon: path; allowed: 0"),
     ("train.safety_weight", -0.5, "train.safety_weight: -0.5 is not allowed; allowed: a number in [0.0, inf]"),
+    ("train.safety_priority", -1, "train.safety_priority: -1 is not allowed; allowed: a number in [0.0, inf]"),
+    ("train.safety_priority", 1.0, "train.safety_priority: 1.0 needs train.safety_horizon other than 0 and "
+                                   "train.prioritized: true; allowed: 0"),
 ])
 def test_a_bad_safety_setting_is_one_line(key, value, message):
     with pytest.raises(ConfigError) as err:

@@ -91,6 +91,10 @@ class FormationDQNConfig(DQNConfig):
         return self.run.train.safety_weight
 
     @property
+    def safety_priority(self) -> float:
+        return self.run.train.safety_priority
+
+    @property
     def prioritized(self) -> bool:
         return self.run.train.prioritized
 

@@ -142,6 +142,9 @@ class TrainSettings:
     safety_horizon: int | str = 0
     safety_slack: int = 0
     safety_weight: float = 1.0
+    # prioritized replay also revisits the states where the safety head is wrong: each wrong verdict of the
+    # 16 adds this much to the state's priority (beside its TD error and margin loss). Needs a safety head
+    safety_priority: float = 0.0
     grad_clip: float = 10.0
     total_env_steps: int = 300_000
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
@@ -168,6 +171,7 @@ class TrainSettings:
         _number(self, "margin_gap", 0.0, math.inf)
         _number(self, "label_preference", 0.0, math.inf)
         _number(self, "safety_weight", 0.0, math.inf)
+        _number(self, "safety_priority", 0.0, math.inf)
         _number(self, "grad_clip", 0.0, math.inf, low_open=True)
         if self.potential not in POTENTIALS:
             raise ConfigError(f"train.potential: {self.potential!r} is not allowed; allowed: {', '.join(POTENTIALS)}")
@@ -183,6 +187,9 @@ class TrainSettings:
         if self.safety_slack and self.safety_horizon != SAFETY_PATH:
             raise ConfigError(f"train.safety_slack: {self.safety_slack} needs train.safety_horizon: {SAFETY_PATH}; "
                               "allowed: 0")
+        if self.safety_priority and not (self.safety_horizon and self.prioritized):
+            raise ConfigError(f"train.safety_priority: {self.safety_priority} needs train.safety_horizon other than 0 "
+                              "and train.prioritized: true; allowed: 0")
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
                      "tolerant_formation", "obstacle_forecast", "follower_answers_leader", "mirror",

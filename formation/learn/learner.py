@@ -225,7 +225,6 @@ class FormationLearner(DQNTorchLearner):
                 loss = loss + config.margin * large_margin[taught].mean()
                 # prioritized replay also revisits the states where the module disagrees with the teacher
                 priority = priority + config.margin * (large_margin.detach() * taught)
-        self._priority[module_id] = priority.cpu().numpy()
         # logged by pull_and_update, in one thread (RLlib's metrics logger is not thread-safe)
         self._stats[module_id] = {"q_mean": q_taken.detach().mean().item(),
                                   "td_abs_mean": td.detach().abs().mean().item()}
@@ -233,8 +232,11 @@ class FormationLearner(DQNTorchLearner):
             logits, safe = fwd_out[SAFETY_LOGITS], batch[SAFE].float()
             safety = torch.nn.functional.binary_cross_entropy_with_logits(logits, safe)
             loss = loss + config.safety_weight * safety
-            self._stats[module_id].update(safety_loss=safety.item(),
-                                          safety_error=((logits.detach() > 0) != safe.bool()).float().mean().item())
+            wrong = (logits.detach() > 0) != safe.bool()
+            self._stats[module_id].update(safety_loss=safety.item(), safety_error=wrong.float().mean().item())
+            # and the states where the safety head's verdicts are wrong, the more the more of them
+            priority = priority + config.safety_priority * wrong.sum(1)
+        self._priority[module_id] = priority.cpu().numpy()
         return loss
 
     def _request(self, batch_size: int, n_step: int, gamma: float, min_records: int):
