@@ -234,8 +234,8 @@ class FormationLearner(DQNTorchLearner):
             loss = loss + config.safety_weight * safety
             wrong = (logits.detach() > 0) != safe.bool()
             self._stats[module_id].update(safety_loss=safety.item(), safety_error=wrong.float().mean().item())
-            # and the states where the safety head's verdicts are wrong, the more the more of them
-            priority = priority + config.safety_priority * wrong.sum(1)
+            if config.safety_priority:  # and the states where the head's verdicts are wrong, the more the more of them
+                priority = priority + config.safety_priority * wrong.sum(1)
         self._priority[module_id] = priority.cpu().numpy()
         return loss
 
