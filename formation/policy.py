@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from formation.config import ConfigError, GameConfig
-from formation.learn.qnet import N_ACTIONS, DuelingQNetwork, team_q_values
+from formation.learn.qnet import N_ACTIONS, DuelingQNetwork, outputs_of, team_q_values
 from formation.shield import Shield, shielded_moves
 
 FORMAT_VERSION = 1
@@ -152,21 +152,10 @@ class Policy:
         """Each module's Q-values and the probability (N, 4, 4) its safety heads give each joint move of being
         safe (their mean; None without heads), from one pass of each network: the layers without weights run
         once for the networks that prepare alike."""
-        prepared: dict[tuple, torch.Tensor] = {}
-        q, safe = {}, []
+        networks = {m: self.networks[m] for m in sorted(set(self.agent_modules))}
         with torch.no_grad():
-            x = torch.from_numpy(np.ascontiguousarray(obs))
-            for module in sorted(set(self.agent_modules)):
-                net = self.networks[module]
-                if net.prepare_key not in prepared:
-                    prepared[net.prepare_key] = net.prepare(x)
-                features = net.features(prepared[net.prepare_key])
-                q[module] = net.q_of(features).numpy()
-                if net.safety is not None:
-                    safe.append(torch.sigmoid(net.safety(features)))
-        if not safe:
-            return q, None
-        return q, torch.stack(safe).mean(0).numpy().reshape(len(obs), N_ACTIONS, N_ACTIONS)
+            q, safe = outputs_of(networks, torch.from_numpy(np.ascontiguousarray(obs)))
+        return {m: v.numpy() for m, v in q.items()}, None if safe is None else safe.numpy()
 
     def learned_safe_moves(self, obs: np.ndarray) -> np.ndarray | None:
         """(N, leader's move, follower's move) bool: the joint moves the networks' safety heads judge safe

@@ -4,6 +4,7 @@ to the learner, which fits the head, and greedy play keeps to the joint moves th
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 
@@ -40,6 +41,8 @@ JOINTS = list(itertools.product(range(4), repeat=2))
     ("train.safety_priority", -1, "train.safety_priority: -1 is not allowed; allowed: a number in [0.0, inf]"),
     ("train.safety_priority", 1.0, "train.safety_priority: 1.0 needs train.safety_horizon other than 0 and "
                                    "train.prioritized: true; allowed: 0"),
+    ("train.rollout_veto", True, "train.rollout_veto: true needs train.safety_horizon other than 0; allowed: false"),
+    ("train.rollout_veto", "yes", "train.rollout_veto: 'yes' is not allowed; allowed: true, false"),
 ])
 def test_a_bad_safety_setting_is_one_line(key, value, message):
     with pytest.raises(ConfigError) as err:
@@ -178,6 +181,34 @@ def test_greedy_play_keeps_to_the_moves_the_head_judges_safe(tmp_path):
     reloaded = load(export(policy, tmp_path / "export"))
     assert json.loads((tmp_path / "export" / "policy.json").read_text())["networks"]["leader"]["safety"] is True
     assert (reloaded.act_batch(obs) == policy.act_batch(obs)).all()
+
+
+def test_with_rollout_veto_the_rollout_actors_play_within_the_moves_the_head_judges_safe(rollout_actor):
+    actor = rollout_actor({"train.follower_answers_leader": True, "train.safety_horizon": 2,
+                           "train.rollout_veto": True, "train.epsilon_start": 0.5, "train.epsilon_end": 0.5})
+    obs = actor.rollout.observations
+    greedy, actions = actor._actions(obs)
+    with torch.no_grad():
+        leader_q = actor.module["leader"].q_network(torch.from_numpy(obs)).numpy()
+        x = actor.module["follower"].q_network.prepare(torch.from_numpy(obs))
+        follower_q = actor.module["follower"].q_network.q_values(x).numpy().reshape(-1, 4, 4)
+        heads = [torch.sigmoid(actor.module[m].q_network.safety_logits(x)).numpy() for m in ("leader", "follower")]
+    safe = np.mean(heads, axis=0).reshape(-1, 4, 4) > 0.5
+    rows = np.arange(len(obs))
+    unvetoed = leader_q.argmax(1)
+    assert (~safe[rows, unvetoed, follower_q[rows, unvetoed].argmax(1)]).any()  # the veto had work to do
+    assert safe[rows, greedy[:, 0], greedy[:, 1]][safe.any(axis=(1, 2))].all()  # greedy play keeps to safe moves
+    # the leader's greedy move is its best with a safe answer, the follower's its best safe answer
+    best_answerable = np.where(safe.any(2), leader_q, -np.inf).argmax(1)
+    assert (greedy[:, 0] == best_answerable).all()
+    assert (actions[:, 0] != greedy[:, 0]).any()  # the leader explored somewhere (epsilon 0.5)
+    for i, (lead, follow) in enumerate(actions):  # the follower answers the move the leader plays, safely
+        allowed = safe[i, lead] if safe[i, lead].any() else np.ones(4, bool)
+        assert follow == np.where(allowed, follower_q[i, lead], -np.inf).argmax()
+    # without the veto the same networks play the Q-values alone
+    actor.run = dataclasses.replace(actor.run, train=dataclasses.replace(actor.run.train, rollout_veto=False))
+    plain_greedy, _ = actor._actions(obs)
+    assert (plain_greedy[:, 0] == unvetoed).all()
 
 
 def test_without_heads_nothing_is_vetoed_and_greedy_within_all_moves_is_plain_greedy():

@@ -145,6 +145,10 @@ class TrainSettings:
     # prioritized replay also revisits the states where the safety head is wrong: each wrong verdict of the
     # 16 adds this much to the state's priority (beside its TD error and margin loss). Needs a safety head
     safety_priority: float = 0.0
+    # the rollout actors' own games play as the trained team does: greedy (and exploring) moves within the joint
+    # moves the safety head judges safe, so DAgger labels the states the vetoed team visits, not those of the
+    # Q-values alone. Needs a safety head
+    rollout_veto: bool = False
     grad_clip: float = 10.0
     total_env_steps: int = 300_000
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
@@ -190,10 +194,12 @@ class TrainSettings:
         if self.safety_priority and not (self.safety_horizon and self.prioritized):
             raise ConfigError(f"train.safety_priority: {self.safety_priority} needs train.safety_horizon other than 0 "
                               "and train.prioritized: true; allowed: 0")
+        if self.rollout_veto is True and not self.safety_horizon:
+            raise ConfigError("train.rollout_veto: true needs train.safety_horizon other than 0; allowed: false")
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
                      "tolerant_formation", "obstacle_forecast", "follower_answers_leader", "mirror",
-                     "answer_every_leader_move"):
+                     "answer_every_leader_move", "rollout_veto"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:

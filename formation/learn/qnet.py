@@ -354,6 +354,25 @@ class DuelingQNetwork(nn.Module):
         return self.safety(self.features(x))
 
 
+def outputs_of(networks: dict[str, DuelingQNetwork], obs: torch.Tensor
+               ) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
+    """Each network's Q-values for the same observations, and the probability (N, 4, 4) its safety heads
+    give each joint move (leader's move, follower's move) of being safe, their mean (None: no heads); the
+    layers without weights run once for the networks that prepare alike, as in ``q_values_of``."""
+    prepared: dict[tuple, torch.Tensor] = {}
+    q, safe = {}, []
+    for name, net in networks.items():
+        if net.prepare_key not in prepared:
+            prepared[net.prepare_key] = net.prepare(obs)
+        features = net.features(prepared[net.prepare_key])
+        q[name] = net.q_of(features)
+        if net.safety is not None:
+            safe.append(torch.sigmoid(net.safety(features)))
+    if not safe:
+        return q, None
+    return q, torch.stack(safe).mean(0).reshape(len(obs), N_ACTIONS, N_ACTIONS)
+
+
 def q_values_of(networks: dict[str, DuelingQNetwork], obs: torch.Tensor) -> dict[str, torch.Tensor]:
     """Each network's Q-values for the same observations, the layers without weights run once for the
     networks that prepare alike (``DuelingQNetwork.prepare_key``): the leader's and the follower's read

@@ -21,10 +21,11 @@ from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_
 
 from formation.game import MOVES
 from formation.learn.config import RunConfig, TrainSettings
-from formation.learn.qnet import q_values_of, team_q_values
+from formation.learn.qnet import outputs_of, q_values_of, team_q_values
 from formation.learn.rollout import GameRollout, concatenate
 from formation.learn.shaping import Potential
 from formation.learn.teacher import Teacher, safety_labels
+from formation.policy import greedy_within
 
 
 def spaces_of(run: RunConfig) -> tuple[gym.spaces.Box, gym.spaces.Discrete]:
@@ -187,18 +188,28 @@ class RolloutActor(EnvRunner, Checkpointable):
     def _actions(self, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The greedy actions (games, agents), and the epsilon-greedy ones to play. Followers that
         answer the leader (``train.follower_answers_leader``) answer the move the leader plays, and
-        explore on their own only with ``train.exploration: independent``."""
+        explore on their own only with ``train.exploration: independent``. With ``train.rollout_veto``
+        both keep to the joint moves the safety heads judge safe, as the trained team does
+        (``formation.policy.greedy_within``): the leader's greedy move among those, the followers' answer
+        among the safe answers to the move the leader plays (any answer where none is judged safe)."""
+        t, modules = self.run.train, self._modules_of_agent
         obs = torch.from_numpy(observations)
         with torch.no_grad():
-            networks = {m: self.module[m].q_network for m in sorted(set(self._modules_of_agent))}
-            q = {m: v.numpy() for m, v in q_values_of(networks, obs).items()}
-        greedy = team_q_values(q, self._modules_of_agent).argmax(-1)
-        t = self.run.train
+            networks = {m: self.module[m].q_network for m in sorted(set(modules))}
+            q, safe = outputs_of(networks, obs) if t.rollout_veto else (q_values_of(networks, obs), None)
+        q = {m: v.numpy() for m, v in q.items()}
+        learned = None if safe is None else safe.numpy() > 0.5
+        greedy = team_q_values(q, modules).argmax(-1) if learned is None else greedy_within(q, modules, None, learned)
         epsilon = epsilon_at(self.num_env_steps_sampled_lifetime, t)
         if not t.follower_answers_leader:
             return greedy, epsilon_greedy(greedy, epsilon, self._rng, joint=t.exploration == "joint")
         leader = epsilon_greedy(greedy[:, :1], epsilon, self._rng, joint=False)[:, 0]
-        actions = team_q_values(q, self._modules_of_agent, leader_moves=leader).argmax(-1)
+        if learned is None:
+            actions = team_q_values(q, modules, leader_moves=leader).argmax(-1)
+        else:  # the joint moves open to the follower: its answers to the move the leader plays
+            played = np.zeros(learned.shape, bool)
+            played[np.arange(len(leader)), leader] = True
+            actions = greedy_within(q, modules, played, learned)
         actions[:, 0] = leader  # its own column holds its greedy move
         if t.exploration == "independent":
             actions[:, 1:] = epsilon_greedy(actions[:, 1:], epsilon, self._rng, joint=False)
