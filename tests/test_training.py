@@ -107,15 +107,16 @@ def test_failure_restarts_reach_the_rollout_actors_and_show_in_the_metrics(clust
         while algo.counters["env_steps"] < 2000:
             result = algo.train()
         # half the restarts come from failures once there are some, half of the others are exploring starts
-        # (the exact shares are tested on GameRollout itself). Here about 60 episodes end, so each share
-        # is a binomial estimate with a standard deviation of about 0.065: the bounds are 4 of those wide,
-        # and a plumbing fault (shares of 0 or 1) still fails.
+        # (the exact shares are tested on GameRollout itself). The result's shares come from the episodes of
+        # its last iteration, about 30, not from all of them (380 or so), so each is loose (a CI run saw 0.38
+        # exploring starts); the bounds leave a chance of about 0.001 to fail by chance, and a plumbing fault
+        # (a setting that does not reach the rollout actors: a share of 0) still fails.
         explore, episodes = result["explore"], algo.counters["episodes"]
         assert episodes >= 40, episodes
-        spread = 4 * (0.25 / episodes) ** 0.5
-        assert abs(explore["start_failure"] - 0.5) < spread, (episodes, explore)
-        assert 0.25 - spread < explore["start_exploring"] < 0.25 + spread, (episodes, explore)
-        assert explore["start_failure"] > 0 and explore["start_exploring"] > 0
+        shares = {start: explore[f"start_{start}"] for start in ("failure", "exploring")}
+        shares["spec"] = 1.0 - sum(shares.values())  # the others started at the spec's places
+        assert all(0.05 < share < 0.95 for share in shares.values()), (episodes, shares)
+        assert shares["failure"] > 0.25, (episodes, shares)
     finally:
         algo.stop()
 
