@@ -103,20 +103,27 @@ def test_accepted_joint_actions_reach_the_replay_and_the_learner_learns_from_the
 def test_failure_restarts_reach_the_rollout_actors_and_show_in_the_metrics(cluster):
     run, algo = build(1, failure_restarts=0.5, exploring_starts=0.5, learning_starts=500)
     try:
-        result = {}
+        # each result's shares come from the episodes that ended in its iteration (20 to 35 here): weigh
+        # them by those counts, to get the shares of all the run's episodes (about 380)
+        starts, episodes = {"failure": 0.0, "exploring": 0.0}, 0
         while algo.counters["env_steps"] < 2000:
+            before = algo.counters["episodes"]
             result = algo.train()
-        # half the restarts come from failures once there are some, half of the others are exploring starts
-        # (the exact shares are tested on GameRollout itself). The result's shares come from the episodes of
-        # its last iteration, about 30, not from all of them (380 or so), so each is loose (a CI run saw 0.38
-        # exploring starts); the bounds leave a chance of about 0.001 to fail by chance, and a plumbing fault
-        # (a setting that does not reach the rollout actors: a share of 0) still fails.
-        explore, episodes = result["explore"], algo.counters["episodes"]
-        assert episodes >= 40, episodes
-        shares = {start: explore[f"start_{start}"] for start in ("failure", "exploring")}
+            ended = algo.counters["episodes"] - before
+            if ended:
+                for start in starts:
+                    starts[start] += result["explore"][f"start_{start}"] * ended
+                episodes += ended
+        assert episodes == algo.counters["episodes"] and episodes >= 100, episodes
+        shares = {start: count / episodes for start, count in starts.items()}
         shares["spec"] = 1.0 - sum(shares.values())  # the others started at the spec's places
-        assert all(0.05 < share < 0.95 for share in shares.values()), (episodes, shares)
-        assert shares["failure"] > 0.25, (episodes, shares)
+        # half the restarts come from failures once there are some, half of the others are exploring starts
+        # (the exact shares are tested on GameRollout itself). Over 350-410 episodes two runs read 0.52 / 0.23 /
+        # 0.25 and 0.49 / 0.29 / 0.22: the bounds are 4 standard deviations or more away, and a plumbing fault
+        # (a setting that does not reach the rollout actors: a share of 0) fails.
+        assert 0.3 < shares["failure"] < 0.7, (episodes, shares)
+        assert 0.1 < shares["exploring"] < 0.4, (episodes, shares)
+        assert 0.1 < shares["spec"] < 0.4, (episodes, shares)
     finally:
         algo.stop()
 
