@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from formation.evaluate import play_greedy
-from formation.policy import load
+from formation.policy import PolicyError, load
 
 
 def main() -> None:
@@ -28,7 +28,10 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=3_000_000)
     args = parser.parse_args()
     torch.set_num_threads(1)
-    policy = load(args.policy)
+    try:
+        policy = load(args.policy)
+    except PolicyError as err:
+        raise SystemExit(f"veto_episodes: {err}") from None
     if not policy.learned_veto:
         raise SystemExit(f"{args.policy}: its networks have no safety head (train.safety_horizon: 0)")
     q_alone = policy.without_learned_veto()
