@@ -61,19 +61,20 @@ class NetworkSpec:
     row_scan: int = 0  # planes of a RowScan (formation.learn.qnet)
     answers_leader: bool = False  # 16 Q-values, one per (leader's move, own move) (formation.learn.qnet)
     safety: bool = False  # a safety head: 16 logits, one per joint move (formation.learn.qnet)
+    safety_encoder: bool = False  # the safety head reads an encoder of its own (formation.learn.qnet)
 
     def build(self) -> DuelingQNetwork:
         return DuelingQNetwork(self.obs_shape, high=self.high, hidden=self.hidden, channels=self.channels,
                                window=self.window, frame_channels=self.frame_channels, cells=self.cells,
                                forecast=self.forecast, row_scan=self.row_scan, answers_leader=self.answers_leader,
-                               safety=self.safety)
+                               safety=self.safety, safety_encoder=self.safety_encoder)
 
     def to_dict(self) -> dict[str, Any]:
         return {"obs_shape": list(self.obs_shape), "high": self.high, "hidden": self.hidden,
                 "channels": list(self.channels), "window": list(self.window) if self.window is not None else None,
                 "frame_channels": self.frame_channels, "cells": list(self.cells) if self.cells is not None else None,
                 "forecast": self.forecast, "row_scan": self.row_scan, "answers_leader": self.answers_leader,
-                "safety": self.safety}
+                "safety": self.safety, "safety_encoder": self.safety_encoder}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> NetworkSpec:
@@ -86,7 +87,8 @@ class NetworkSpec:
                    cells=tuple(int(v) for v in cells) if cells is not None else None,
                    forecast=bool(values.get("forecast", False)), row_scan=int(values.get("row_scan", 0)),
                    answers_leader=bool(values.get("answers_leader", False)),
-                   safety=bool(values.get("safety", False)))
+                   safety=bool(values.get("safety", False)),
+                   safety_encoder=bool(values.get("safety_encoder", False)))
 
 
 class Policy:
@@ -256,7 +258,8 @@ def run_specs(run) -> tuple[dict[str, NetworkSpec], list[str]]:
               "channels": run.train.channels, **leader_window_config(run, shape)}
     agent_modules = module_of_agent(run)
     return {m: NetworkSpec.from_dict({**values, "answers_leader": answers_leader(run, m),
-                                      "safety": run.train.safety_head})
+                                      "safety": run.train.safety_head,
+                                      "safety_encoder": run.train.safety_encoder})
             for m in sorted(set(agent_modules))}, agent_modules
 
 

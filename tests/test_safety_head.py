@@ -17,7 +17,7 @@ from formation.game import BatchedGame, Observer
 from formation.game.mirror import mirror_steps
 from formation.learn.config import RunConfig
 from formation.learn.learner import SAFE, module_batches
-from formation.learn.qnet import DuelingQNetwork
+from formation.learn.qnet import DuelingQNetwork, RowScan, outputs_of
 from formation.learn.replay import FrameReplay
 from formation.learn.rollout import GameRollout, concatenate
 from formation.planner import (
@@ -43,6 +43,9 @@ JOINTS = list(itertools.product(range(4), repeat=2))
                                    "train.prioritized: true; allowed: 0"),
     ("train.rollout_veto", True, "train.rollout_veto: true needs train.safety_horizon other than 0; allowed: false"),
     ("train.rollout_veto", "yes", "train.rollout_veto: 'yes' is not allowed; allowed: true, false"),
+    ("train.safety_encoder", True, "train.safety_encoder: true needs train.safety_horizon other than 0; "
+                                   "allowed: false"),
+    ("train.safety_encoder", "own", "train.safety_encoder: 'own' is not allowed; allowed: true, false"),
 ])
 def test_a_bad_safety_setting_is_one_line(key, value, message):
     with pytest.raises(ConfigError) as err:
@@ -122,6 +125,54 @@ def test_the_head_gives_16_logits_beside_unchanged_q_values():
     assert plain.safety is None
     assert torch.equal(plain(obs), headed(obs))  # the head adds weights after the Q-values' own
     assert headed.safety_logits(headed.prepare(obs)).shape == (5, 16)
+
+
+def test_a_head_with_an_encoder_of_its_own_leaves_the_q_values_and_their_layers_alone():
+    torch.manual_seed(0)
+    shared = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), row_scan=2, safety=True)
+    torch.manual_seed(0)
+    own = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), row_scan=2, safety=True,
+                          safety_encoder=True)
+    assert shared.safety_encoder is None and isinstance(own.safety_encoder[0], RowScan)
+    obs = torch.randint(0, 2, (5, 9, 9, 8), dtype=torch.uint8)
+    assert torch.equal(shared(obs), own(obs))  # its encoder adds weights after the Q-values' own
+    x = own.prepare(obs)
+    logits = own.safety_logits(x)
+    assert torch.equal(logits, own.safety_of(x, own.features(x))) and logits.shape == (5, 16)
+    assert not torch.equal(logits, shared.safety_logits(x))  # the same head on other features
+    q, safe = outputs_of({"leader": own}, obs)
+    assert torch.equal(q["leader"], own(obs)) and torch.allclose(safe.reshape(5, 16), torch.sigmoid(logits))
+    # the safety loss reaches the head's encoder and not the Q-values' layers; with shared features it does
+    for net in (shared, own):
+        net.zero_grad()
+        net.safety_logits(x).square().mean().backward()
+    assert shared.encoder[0].weight.grad.abs().sum() > 0 and shared.row_scan.read.weight.grad.abs().sum() > 0
+    assert own.encoder[0].weight.grad is None and own.row_scan.read.weight.grad is None
+    assert own.safety_encoder[1][0].weight.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="safety_encoder: needs a safety head"):
+        DuelingQNetwork((9, 9, 8), high=1.0, safety_encoder=True)
+
+
+def test_training_and_exports_build_the_head_with_its_encoder(tmp_path):
+    from formation.learn.algorithm import module_specs
+    from formation.policy import run_specs
+
+    run = RunConfig.load(SMOKE, {"train.safety_horizon": 2, "train.safety_encoder": True})
+    specs, agent_modules = run_specs(run)
+    for module, spec in module_specs(run).items():
+        trained = spec.build().q_network
+        assert trained.safety_encoder is not None and specs[module].safety_encoder
+        assert trained.state_dict().keys() == specs[module].build().state_dict().keys()
+    networks = {m: s.build() for m, s in specs.items()}
+    policy = Policy(run.game, networks, specs, agent_modules, "test")
+    reloaded = load(export(policy, tmp_path / "export"))
+    card = json.loads((tmp_path / "export" / "policy.json").read_text())
+    assert all(card["networks"][m]["safety_encoder"] is True for m in specs)
+    game = BatchedGame(run.game, batch_size=8, seed=0)
+    game.reset()
+    obs = Observer(game).observe(np.ones(8, bool))
+    assert all(net.safety_encoder is not None for net in reloaded.networks.values())
+    assert (reloaded.learned_safe_moves(obs) == policy.learned_safe_moves(obs)).all()
 
 
 def visited_states(config: GameConfig, games: int = 8, steps: int = 6, seed: int = 3):

@@ -105,7 +105,8 @@ def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLMo
     obs_space, act_space = spaces_of(run)
     model_config = {"hidden": t.hidden, "channels": list(t.channels),
                     "epsilon": [(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)],
-                    "safety": t.safety_head, **leader_window_config(run, obs_space.shape)}
+                    "safety": t.safety_head, "safety_encoder": t.safety_encoder,
+                    **leader_window_config(run, obs_space.shape)}
     return {m: RLModuleSpec(module_class=DuelingQModule, observation_space=obs_space,
                             action_space=gym.spaces.Discrete(16) if answers_leader(run, m) else act_space,
                             model_config={**model_config, "answers_leader": answers_leader(run, m)},

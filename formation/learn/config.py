@@ -149,6 +149,10 @@ class TrainSettings:
     # moves the safety head judges safe, so DAgger labels the states the vetoed team visits, not those of the
     # Q-values alone. Needs a safety head
     rollout_veto: bool = False
+    # the safety head reads an encoder of its own (a copy of the Q-values' layers with weights, trained by the
+    # safety loss alone) instead of the Q-values' features, so its errors need not fall in the states where the
+    # Q-values err. Needs a safety head
+    safety_encoder: bool = False
     grad_clip: float = 10.0
     total_env_steps: int = 300_000
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
@@ -196,10 +200,12 @@ class TrainSettings:
                               "and train.prioritized: true; allowed: 0")
         if self.rollout_veto is True and not self.safety_horizon:
             raise ConfigError("train.rollout_veto: true needs train.safety_horizon other than 0; allowed: false")
+        if self.safety_encoder is True and not self.safety_horizon:
+            raise ConfigError("train.safety_encoder: true needs train.safety_horizon other than 0; allowed: false")
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
                      "tolerant_formation", "obstacle_forecast", "follower_answers_leader", "mirror",
-                     "answer_every_leader_move", "rollout_veto"):
+                     "answer_every_leader_move", "rollout_veto", "safety_encoder"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:

@@ -3,7 +3,7 @@
 It implements RLlib's ``QNetAPI`` and ``TargetNetworkAPI``, so RLlib's DQN learner (the stock
 path) and ours both train it, and ``InferenceOnlyAPI``, so rollout actors get weights without
 the target network. ``model_config``: ``hidden``, ``channels``, ``window``, ``frame_channels``, ``cells``,
-``forecast``, ``row_scan``, ``answers_leader``, ``safety`` (see ``formation.learn.qnet``). A module that answers
+``forecast``, ``row_scan``, ``answers_leader``, ``safety``, ``safety_encoder`` (see ``formation.learn.qnet``). A module that answers
 the leader has 16 actions, (leader's move, own move) as ``4 * leader + own``: its greedy and
 exploring forward passes pick among those, so rollouts and evaluation pick its row themselves
 (``formation.learn.qnet.team_q_values``).
@@ -40,7 +40,8 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
                                          forecast=bool(cfg.get("forecast", False)),
                                          row_scan=int(cfg.get("row_scan", 0)),
                                          answers_leader=bool(cfg.get("answers_leader", False)),
-                                         safety=bool(cfg.get("safety", False)))
+                                         safety=bool(cfg.get("safety", False)),
+                                         safety_encoder=bool(cfg.get("safety_encoder", False)))
         # RLlib's DQNConfig puts an epsilon schedule into every module's model_config.
         self.epsilon_schedule = Scheduler(fixed_value_or_schedule=cfg.get("epsilon", 0.05), framework="torch")
 
@@ -83,7 +84,7 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
         x = batch[PREPARED_OBS] if PREPARED_OBS in batch else net.prepare(batch[Columns.OBS])
         features = net.features(x)
         q = net.q_of(features)
-        out = {} if net.safety is None else {SAFETY_LOGITS: net.safety(features)}
+        out = {} if net.safety is None else {SAFETY_LOGITS: net.safety_of(x, features)}
         with torch.no_grad():  # targets only: no backward pass through the next observations
             x_next = batch[PREPARED_NEXT_OBS] if PREPARED_NEXT_OBS in batch else net.prepare(batch[Columns.NEXT_OBS])
             q_next, q_target_next = net.q_values(x_next), self._target_q_network.q_values(x_next)

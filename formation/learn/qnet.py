@@ -265,12 +265,15 @@ class DuelingQNetwork(nn.Module):
     read per cell, of two frames or more). ``row_scan``: add that many planes of a ``RowScan`` before
     the encoder (0: none). ``answers_leader``: 16 Q-values, one per (leader's move, own move), row by
     row, instead of 4. ``safety``: a second head beside the dueling one, 16 logits of whether each joint
-    move (leader's move, follower's move, row by row) is safe (``safety_logits``, ``train.safety_horizon``)."""
+    move (leader's move, follower's move, row by row) is safe (``safety_logits``, ``train.safety_horizon``).
+    ``safety_encoder``: that head reads an encoder of its own (and a row scan of its own, if any), a copy of
+    the layers the Q-values read, instead of their features (``train.safety_encoder``)."""
 
     def __init__(self, obs_shape: tuple[int, int, int], high: float = 255.0, hidden: int = 128,
                  channels: tuple[int, int, int] = (16, 32, 32), window: tuple[int, int, int] | None = None,
                  frame_channels: int | None = None, cells: tuple[int, int] | None = None, forecast: bool = False,
-                 row_scan: int = 0, answers_leader: bool = False, safety: bool = False):
+                 row_scan: int = 0, answers_leader: bool = False, safety: bool = False,
+                 safety_encoder: bool = False):
         super().__init__()
         self.obs_shape = tuple(obs_shape)
         screens = min(obs_shape[:2]) >= 64
@@ -295,6 +298,7 @@ class DuelingQNetwork(nn.Module):
         if window is not None:
             self.window = LeaderWindow(seen, tuple(window), frame_channels, screens)
             seen = self.window.out_shape
+        read = seen  # what the layers with weights read
         self.row_scan = None
         if row_scan:
             if screens and self.cells is None:
@@ -310,6 +314,12 @@ class DuelingQNetwork(nn.Module):
         self.safety = None
         if safety:
             self.safety = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, N_ACTIONS ** 2))
+        self.safety_encoder = None
+        if safety_encoder:
+            if not safety:
+                raise ValueError("safety_encoder: needs a safety head (safety)")
+            scan = [RowScan(read[2], row_scan)] if row_scan else []
+            self.safety_encoder = nn.Sequential(*scan, encoder(seen, channels, screens and self.cells is None))
         # what ``prepare`` depends on: equal keys, equal outputs for the same observations
         cells, forecast, window = self.cells, self.forecast, self.window
         self.prepare_key = (self.obs_shape, 1.0 / high,
@@ -349,8 +359,15 @@ class DuelingQNetwork(nn.Module):
     def q_of(self, features: torch.Tensor) -> torch.Tensor:
         return dueling(self.value(features), self.advantage(features))
 
+    def safety_of(self, x: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
+        """(N, 16) logits of each joint move being safe (a network with ``safety``), from ``prepare``'s output
+        ``x`` and the Q-values' ``features`` of it: the head reads those, or its own encoder's."""
+        return self.safety(features if self.safety_encoder is None else self.safety_encoder(x))
+
     def safety_logits(self, x: torch.Tensor) -> torch.Tensor:
         """(N, 16) logits of each joint move being safe, from ``prepare``'s output (a network with ``safety``)."""
+        if self.safety_encoder is not None:
+            return self.safety(self.safety_encoder(x))
         return self.safety(self.features(x))
 
 
@@ -364,10 +381,11 @@ def outputs_of(networks: dict[str, DuelingQNetwork], obs: torch.Tensor
     for name, net in networks.items():
         if net.prepare_key not in prepared:
             prepared[net.prepare_key] = net.prepare(obs)
-        features = net.features(prepared[net.prepare_key])
+        x = prepared[net.prepare_key]
+        features = net.features(x)
         q[name] = net.q_of(features)
         if net.safety is not None:
-            safe.append(torch.sigmoid(net.safety(features)))
+            safe.append(torch.sigmoid(net.safety_of(x, features)))
     if not safe:
         return q, None
     return q, torch.stack(safe).mean(0).reshape(len(obs), N_ACTIONS, N_ACTIONS)
