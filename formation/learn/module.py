@@ -3,8 +3,8 @@
 It implements RLlib's ``QNetAPI`` and ``TargetNetworkAPI``, so RLlib's DQN learner (the stock
 path) and ours both train it, and ``InferenceOnlyAPI``, so rollout actors get weights without
 the target network. ``model_config``: ``hidden``, ``channels``, ``window``, ``frame_channels``, ``cells``,
-``forecast``, ``row_scan``, ``answers_leader``, ``safety``, ``safety_encoder`` (see ``formation.learn.qnet``). A module that answers
-the leader has 16 actions, (leader's move, own move) as ``4 * leader + own``: its greedy and
+``forecast``, ``row_scan``, ``answers_leader``, ``safety``, ``safety_encoder`` (see ``formation.learn.qnet``).
+A module that answers the leader has 16 actions, (leader's move, own move) as ``4 * leader + own``: its greedy and
 exploring forward passes pick among those, so rollouts and evaluation pick its row themselves
 (``formation.learn.qnet.team_q_values``).
 """
