@@ -138,8 +138,9 @@ def test_a_head_with_an_encoder_of_its_own_leaves_the_q_values_and_their_layers_
     assert torch.equal(shared(obs), own(obs))  # its encoder adds weights after the Q-values' own
     x = own.prepare(obs)
     logits = own.safety_logits(x)
-    assert torch.equal(logits, own.safety_of(x, own.features(x))) and logits.shape == (5, 16)
+    assert torch.equal(logits, own.safety_logits(x, own.features(x))) and logits.shape == (5, 16)
     assert not torch.equal(logits, shared.safety_logits(x))  # the same head on other features
+    assert torch.equal(shared.safety_logits(x, shared.features(x)), shared.safety_logits(x))
     q, safe = outputs_of({"leader": own}, obs)
     assert torch.equal(q["leader"], own(obs)) and torch.allclose(safe.reshape(5, 16), torch.sigmoid(logits))
     # the safety loss reaches the head's encoder and not the Q-values' layers; with shared features it does

@@ -84,7 +84,7 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
         x = batch[PREPARED_OBS] if PREPARED_OBS in batch else net.prepare(batch[Columns.OBS])
         features = net.features(x)
         q = net.q_of(features)
-        out = {} if net.safety is None else {SAFETY_LOGITS: net.safety_of(x, features)}
+        out = {} if net.safety is None else {SAFETY_LOGITS: net.safety_logits(x, features)}
         with torch.no_grad():  # targets only: no backward pass through the next observations
             x_next = batch[PREPARED_NEXT_OBS] if PREPARED_NEXT_OBS in batch else net.prepare(batch[Columns.NEXT_OBS])
             q_next, q_target_next = net.q_values(x_next), self._target_q_network.q_values(x_next)

@@ -359,16 +359,13 @@ class DuelingQNetwork(nn.Module):
     def q_of(self, features: torch.Tensor) -> torch.Tensor:
         return dueling(self.value(features), self.advantage(features))
 
-    def safety_of(self, x: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
-        """(N, 16) logits of each joint move being safe (a network with ``safety``), from ``prepare``'s output
-        ``x`` and the Q-values' ``features`` of it: the head reads those, or its own encoder's."""
-        return self.safety(features if self.safety_encoder is None else self.safety_encoder(x))
-
-    def safety_logits(self, x: torch.Tensor) -> torch.Tensor:
-        """(N, 16) logits of each joint move being safe, from ``prepare``'s output (a network with ``safety``)."""
+    def safety_logits(self, x: torch.Tensor, features: torch.Tensor | None = None) -> torch.Tensor:
+        """(N, 16) logits of each joint move being safe, from ``prepare``'s output (a network with ``safety``).
+        The head reads its own encoder's features of ``x``, or else the Q-values' (``features``, where the
+        caller has them already)."""
         if self.safety_encoder is not None:
             return self.safety(self.safety_encoder(x))
-        return self.safety(self.features(x))
+        return self.safety(self.features(x) if features is None else features)
 
 
 def outputs_of(networks: dict[str, DuelingQNetwork], obs: torch.Tensor
@@ -385,7 +382,7 @@ def outputs_of(networks: dict[str, DuelingQNetwork], obs: torch.Tensor
         features = net.features(x)
         q[name] = net.q_of(features)
         if net.safety is not None:
-            safe.append(torch.sigmoid(net.safety_of(x, features)))
+            safe.append(torch.sigmoid(net.safety_logits(x, features)))
     if not safe:
         return q, None
     return q, torch.stack(safe).mean(0).reshape(len(obs), N_ACTIONS, N_ACTIONS)
