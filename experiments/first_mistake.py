@@ -1,4 +1,5 @@
-"""Who leaves the shortest paths first: play a policy greedily and, at every step, compare the team's
+"""Who leaves the shortest paths first: play a policy greedily as `formation evaluate` does (within the
+joint moves its safety heads judge safe, if it has any) and, at every step, compare the team's
 joint move with every joint move that starts a shortest path (the planner's
 ``shortest_first_moves``), not with one label.
 
@@ -32,6 +33,7 @@ import torch
 
 from formation.evaluate import play_greedy
 from formation.learn.config import TrainSettings
+from formation.learn.qnet import team_q_values
 from formation.learn.teacher import Teacher
 from formation.planner import shortest_first_moves, shortest_path
 from formation.policy import load
@@ -56,8 +58,10 @@ def main() -> None:
     q_now: dict[str, np.ndarray] = {}
 
     def act(obs: np.ndarray) -> np.ndarray:
-        q_now["q"] = policy.q_batch(obs)  # (N, agents, 4): the follower's row of the leader's greedy move
-        return q_now["q"].argmax(axis=-1)
+        moves = policy.act_batch(obs)  # as `formation evaluate` plays: within the safety heads' moves, if any
+        # (N, agents, 4): each agent's Q-values, the follower's in the row of the move the leader makes
+        q_now["q"] = team_q_values(policy.outputs(obs)[0], policy.agent_modules, leader_moves=moves[:, 0])
+        return moves
 
     def watch(game, actions: np.ndarray, live: np.ndarray) -> None:
         for i in np.flatnonzero(live):
