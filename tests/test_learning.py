@@ -26,7 +26,7 @@ def test_a_random_policy_almost_never_succeeds_on_the_small_board():
 
 
 def test_the_default_recipe_learns_the_small_board(tmp_path):
-    """A few minutes alone on 2 cores. Measured 92.5% and 91.5% at 8k env steps (seeds 0, 1; docs/TRAINING.md)."""
+    """About 3 min alone on 2 cores. Measured 88.5% and 91.5% at 8k env steps (seeds 0, 1; docs/TRAINING.md)."""
     out = tmp_path / "small"
     env = dict(os.environ, RAY_ADDRESS="")  # a local Ray of its own, not a cluster the shell may know
     done = subprocess.run([sys.executable, "-m", "formation.cli", "train", SMALL, "--out", str(out)],
@@ -36,7 +36,7 @@ def test_the_default_recipe_learns_the_small_board(tmp_path):
     greedy = result["greedy"]
     assert result["env_steps"] >= 8_000
     assert greedy["episodes"] == 200
-    # the issue asks for 80%; a random policy succeeds in under 5% (above); the recipe measured 91.5-92.5%
+    # the issue asks for 80%; a random policy succeeds in under 5% (above); the recipe measured 88.5-91.5%
     assert greedy["success"] >= 0.8, greedy
     # successes take close to the shortest path (8 steps from the start row on a 9x9 board)
     assert greedy["steps_success_mean"] < 10, greedy
