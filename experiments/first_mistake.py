@@ -58,9 +58,10 @@ def main() -> None:
     q_now: dict[str, np.ndarray] = {}
 
     def act(obs: np.ndarray) -> np.ndarray:
-        moves = policy.act_batch(obs)  # as `formation evaluate` plays: within the safety heads' moves, if any
+        # as `formation evaluate` plays: within the safety heads' moves, if any
+        moves, by_module = policy.act_batch_and_q(obs)
         # (N, agents, 4): each agent's Q-values, the follower's in the row of the move the leader makes
-        q_now["q"] = team_q_values(policy.outputs(obs)[0], policy.agent_modules, leader_moves=moves[:, 0])
+        q_now["q"] = team_q_values(by_module, policy.agent_modules, leader_moves=moves[:, 0])
         return moves
 
     def watch(game, actions: np.ndarray, live: np.ndarray) -> None:

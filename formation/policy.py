@@ -134,8 +134,10 @@ class Policy:
         """Every agent's Q-values (N, 1+k, 4) for a batch of observations (N, h, w, c) every agent shares;
         each module runs once, whatever the number of agents using it. A follower that answers the
         leader reads the row of the leader's greedy move."""
-        by_module = {m: self.q_values(obs, m) for m in sorted(set(self.agent_modules))}
-        return team_q_values(by_module, self.agent_modules)
+        return team_q_values(self._q_by_module(obs), self.agent_modules)
+
+    def _q_by_module(self, obs: np.ndarray) -> dict[str, np.ndarray]:
+        return {m: self.q_values(obs, m) for m in sorted(set(self.agent_modules))}
 
     def shielded(self, horizon: int) -> Policy:
         """The same networks behind a safety shield that looks ``horizon`` steps ahead
@@ -169,12 +171,18 @@ class Policy:
         """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares
         (``formation.evaluate.play_greedy``'s ``act``); behind the shield where one is set, and within the
         joint moves the networks' safety heads judge safe where they have them (``learned_veto``)."""
+        return self.act_batch_and_q(obs)[0]
+
+    def act_batch_and_q(self, obs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """``act_batch``'s joint actions and each module's Q-values they came from (as ``outputs``
+        gives them), from one pass of each network."""
         if self.shield is None and not self.learned_veto:
-            return self.q_batch(obs).argmax(axis=-1)
+            by_module = self._q_by_module(obs)
+            return team_q_values(by_module, self.agent_modules).argmax(axis=-1), by_module
         by_module, safe_probability = self.outputs(obs)
         allowed = self.shield.allowed(obs) if self.shield is not None else None
         learned = safe_probability > 0.5 if self.learned_veto and safe_probability is not None else None
-        return greedy_within(by_module, self.agent_modules, allowed, learned)
+        return greedy_within(by_module, self.agent_modules, allowed, learned), by_module
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, int]:
         """Greedy actions of the agents in ``observations`` (per-agent observations as the PettingZoo

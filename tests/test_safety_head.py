@@ -229,6 +229,11 @@ def test_greedy_play_keeps_to_the_moves_the_head_judges_safe(tmp_path):
     assert policy.learned_veto
     assert (policy.without_learned_veto().act_batch(obs)[:, 0] == 0).all()
     assert (policy.act_batch(obs)[:, 0] != 0).all()
+    # the moves with the Q-values they came from (experiments/first_mistake.py): one pass of each network
+    moves, by_module = policy.act_batch_and_q(obs)
+    assert (moves == policy.act_batch(obs)).all()
+    assert all(np.array_equal(by_module[m], q) for m, q in policy.outputs(obs)[0].items())
+    assert sorted(by_module) == ["follower", "leader"]
     # the head travels with an export, and so does the veto
     reloaded = load(export(policy, tmp_path / "export"))
     assert json.loads((tmp_path / "export" / "policy.json").read_text())["networks"]["leader"]["safety"] is True
@@ -277,6 +282,9 @@ def test_without_heads_nothing_is_vetoed_and_greedy_within_all_moves_is_plain_gr
     by_module, safe_probability = policy.outputs(obs)
     assert safe_probability is None
     assert (greedy_within(by_module, policy.agent_modules, None, None) == policy.act_batch(obs)).all()
+    moves, q = policy.act_batch_and_q(obs)
+    assert (moves == policy.act_batch(obs)).all() and (moves == policy.q_batch(obs).argmax(-1)).all()
+    assert sorted(q) == sorted(by_module) and all(np.array_equal(q[m], by_module[m]) for m in q)
 
 
 def test_the_learner_fits_the_safety_head_through_ray(cluster, tmp_path):
