@@ -14,7 +14,13 @@ import pytest
 from formation.config import ConfigError, GameConfig
 from formation.evaluate import play_greedy
 from formation.game import BatchedGame, Observer
-from formation.planner import surviving_first_moves_many
+from formation.planner import (
+    _Board,
+    _first_moves_surviving,
+    _lockstep_survivors,
+    _ObstacleFuture,
+    surviving_first_moves_many,
+)
 from formation.policy import load
 from formation.shield import Shield, obstacle_readings, read_states, shielded_moves
 
@@ -206,3 +212,34 @@ def test_a_finished_or_unreadable_game_gets_no_veto():
     assert allowed[0].all() and not allowed[1].all()  # the live game keeps its vetoes
     blank = np.zeros_like(obs[:1])  # no agent on the screen
     assert shield.allowed(blank).all()
+
+
+@pytest.mark.parametrize("setting", [2, 3])
+def test_first_moves_shown_safe_by_lockstep_continuations_need_no_search_and_change_nothing(setting):
+    config = GameConfig.from_setting(setting)
+    game = BatchedGame(config, batch_size=400, seed=7)
+    game.reset()
+    rng = np.random.default_rng(2)
+    scenarios = []
+    for _ in range(12):  # states all over the board, near obstacles, some near the destination
+        moves = np.where(rng.random((400, 1)) < 0.7, 0, rng.integers(0, 4, (400, 1)))
+        game.step(np.repeat(moves, 2, axis=1))
+        game.reset(mask=game.done)
+        scenarios += [game.scenario(i) for i in range(0, 400, 40)]
+    for horizon in (1, 2, 6):
+        steps = np.full(len(scenarios), horizon)
+        searched = _first_moves_surviving(scenarios, config, steps, deadline=False, shortcut=False)
+        assert np.array_equal(_first_moves_surviving(scenarios, config, steps, deadline=False), searched)
+        assert np.array_equal(surviving_first_moves_many(scenarios, config=config, horizon=horizon), searched)
+    # the continuations alone find most safe first moves, and only safe ones
+    board = _Board(config)
+    zones = _ObstacleFuture(config, scenarios, board).zones(6)
+    starts = np.array([[r * board.width + c for r, c in (s.leader, *s.followers)] for s in scenarios], np.int32)
+    shown = _lockstep_survivors(board, zones, starts, np.full(len(scenarios), 6))
+    assert ((shown & ~searched) == 0).all()
+    assert ones(shown) > 0.8 * ones(searched) and ones(searched) < 16 * len(scenarios)
+
+
+def ones(masks: np.ndarray) -> int:
+    """Set bits over all of ``masks``."""
+    return sum(bin(int(m)).count("1") for m in masks)
