@@ -1,6 +1,7 @@
 """How strict the safety heads' veto should be: the team of a run or export with safety heads
 (``train.safety_horizon``) played greedily within the joint moves whose mean safe probability is above each
-threshold (``formation evaluate`` uses one half), on the same scenarios.
+threshold (``formation evaluate`` uses the policy's ``veto_threshold``: one half, or what ``formation refit``
+set), on the same scenarios (``Policy.with_veto_threshold``).
 
     .venv/bin/python experiments/veto_threshold.py policies/setting4 [--thresholds 0.5 0.7 0.9] [--seed 3000000]
 
@@ -13,17 +14,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from formation.evaluate import play_greedy
-from formation.policy import greedy_within, load
-
-
-def within_threshold(safe_probability: np.ndarray, threshold: float) -> np.ndarray:
-    """(N, 4, 4) bool: the joint moves above ``threshold``, or, in a state with none, those above one half."""
-    strict = safe_probability > threshold
-    return np.where(strict.any(axis=(1, 2), keepdims=True), strict, safe_probability > 0.5)
+from formation.policy import load
 
 
 def main() -> None:
@@ -41,12 +35,7 @@ def main() -> None:
     if not policy.learned_veto:
         raise SystemExit(f"{args.policy}: its networks have no safety head (train.safety_horizon: 0)")
     for threshold in args.thresholds:
-
-        def act(obs: np.ndarray, threshold: float = threshold) -> np.ndarray:
-            by_module, safe_probability = policy.outputs(obs)
-            return greedy_within(by_module, policy.agent_modules, None,
-                                 within_threshold(safe_probability, threshold))
-
+        act = policy.with_veto_threshold(threshold).act_batch
         summary = play_greedy(policy.game, act, args.episodes, args.seed)["summary"]
         s = {k: v for k, v in summary.items() if k not in ("return_mean",)}
         print(f"{args.policy} threshold {threshold}: {s}", flush=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -76,6 +77,40 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_refit(args: argparse.Namespace) -> int:
+    """Refit a trained team's safety heads on fresh states of its own play; write the team as an export."""
+    from formation.learn.config import RunConfig, section_of
+    from formation.learn.safety_refit import check_refittable, refit
+    from formation.policy import CARD, export, load
+    from formation.storage import local_run_folder
+
+    overrides = parse_overrides(args.set)
+    for key in overrides:
+        if key.partition(".")[0] != "refit":
+            raise ConfigError(f"--set {key}: refit takes refit.* keys only, e.g. --set refit.rounds=3")
+    out = Path(args.dir)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ConfigError(f"refit: {str(out)!r} exists and is not an empty folder; give a new folder "
+                          f"(nothing is overwritten)")
+    path = local_run_folder(args.checkpoint)
+    policy = load(path)
+    check_refittable(policy)
+    saved = path / "config.yaml"  # a run folder's refit section; an export's: the defaults
+    values = RunConfig.load_saved(saved).to_dict()["refit"] if saved.is_file() else {}
+    settings = section_of("refit", {**values, **{k.partition(".")[2]: v for k, v in overrides.items()}})
+    print(f"refitting the safety heads of {args.checkpoint}: {settings.rounds} round(s) of {settings.episodes:,} "
+          f"games, labels over {settings.horizon} steps, {settings.workers or 'one per core'} planner worker(s)",
+          flush=True)
+    report = refit(policy, settings, say=lambda line: print(line, flush=True))
+    policy.refit_report = report
+    partial = out.with_name(out.name + ".partial")  # the export appears whole or not at all
+    shutil.rmtree(partial, ignore_errors=True)
+    export(policy, partial, half=args.half)
+    partial.rename(out)
+    print(f"refitted in {report['seconds'] / 60:.1f} min; wrote {out} ({CARD})")
+    return 0
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Greedy play of a restored policy on held-out scenarios, against the clairvoyant planner."""
     import json
@@ -95,6 +130,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.shield < 0:
         raise ConfigError(f"--shield: {args.shield} is not allowed; allowed: an integer >= 0 (steps ahead; 0: none)")
     policy = load(local_run_folder(args.checkpoint)).shielded(args.shield)
+    if args.veto_threshold is not None:
+        if not 0.0 <= args.veto_threshold < 1.0:
+            raise ConfigError(f"--veto-threshold: {args.veto_threshold:g} is not allowed; allowed: a number in [0, 1)")
+        policy = policy.with_veto_threshold(args.veto_threshold)
     trained_on = policy.game.setting
     if args.setting is not None and trained_on != args.setting:
         what = f"setting {trained_on}" if trained_on is not None else \
@@ -118,10 +157,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     report = evaluate_policy(policy.game, policy.act_batch, episodes, seed, workers=workers, progress=progress)
     report = {"checkpoint": str(args.checkpoint), "setting": trained_on, "env_steps": policy.env_steps,
-              "shield": args.shield, **report}
+              "shield": args.shield, "veto_threshold": policy.veto_threshold if policy.learned_veto else None,
+              **report}
     print(f"{args.checkpoint}: {episodes} greedy episodes"
           + (f" after {policy.env_steps:,} env steps" if policy.env_steps is not None else "")
-          + (f", behind a shield of {args.shield} steps" if args.shield else ""))
+          + (f", behind a shield of {args.shield} steps" if args.shield else "")
+          + (f", veto above {policy.veto_threshold:g}" if policy.learned_veto else ""))
     print(format_report(report))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
@@ -184,6 +225,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--shield", type=int, default=0, metavar="STEPS",
                           help="play behind a safety shield that vetoes moves lost within STEPS steps "
                                "(formation.shield; default 0: the networks alone)")
+    evaluate.add_argument("--veto-threshold", type=float, metavar="P",
+                          help="keep to the joint moves the safety heads judge safe with a probability above P "
+                               "(default: the policy's own, 0.5 or what formation refit set)")
     evaluate.set_defaults(run=cmd_evaluate)
 
     export = sub.add_parser("export", help="write a checkpoint's networks and a policy card for torch alone")
@@ -192,6 +236,15 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--half", action="store_true",
                         help="store the weights as float16: half the size; evaluate the export itself")
     export.set_defaults(run=cmd_export)
+
+    refit = sub.add_parser("refit", help="refit a trained team's safety heads on fresh states of its own play, "
+                                         "labelled by the planner; write the team as an export")
+    refit.add_argument("checkpoint", help=CHECKPOINT_HELP + ", whose networks have safety heads")
+    refit.add_argument("dir", help="a new output folder: <module>.pt and policy.json, as formation export writes")
+    refit.add_argument("--set", action="append", default=[], metavar="refit.KEY=VALUE",
+                       help="override a refit setting (default: the run's refit section), e.g. --set refit.rounds=3")
+    refit.add_argument("--half", action="store_true", help="store the weights as float16, as formation export --half")
+    refit.set_defaults(run=cmd_refit)
 
     render = sub.add_parser("render", help="draw a trained policy's episodes, paths, Q-values and training curves")
     render.add_argument("checkpoint", help=CHECKPOINT_HELP)

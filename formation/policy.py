@@ -40,6 +40,7 @@ CARD = "policy.json"
 RL_MODULES = Path("checkpoint") / "learner_group" / "learner" / "rl_module"
 CHECKPOINT_STATE = Path("checkpoint") / "algorithm_state.pkl"  # the counters, among RLlib's own state
 DEFAULT_EVAL = {"episodes": 200, "seed": 1_000_000}
+DEFAULT_VETO_THRESHOLD = 0.5  # what training's heads are fitted to: the better guess of safe or not
 
 
 class PolicyError(ConfigError):
@@ -105,6 +106,9 @@ class Policy:
         self.env_steps = env_steps
         self.eval_settings = dict(eval_settings or DEFAULT_EVAL)
         self.shield: Shield | None = None
+        self.refit_report: dict | None = None  # what `formation refit` did to the safety heads, if it did
+        # greedy play keeps to the joint moves whose mean safe probability is above this (``within_veto``)
+        self.veto_threshold = DEFAULT_VETO_THRESHOLD
         # networks with a safety head (train.safety_horizon) keep greedy play to the joint moves it judges safe
         self.learned_veto = any(net.safety is not None for net in networks.values())
         for net in networks.values():
@@ -152,20 +156,29 @@ class Policy:
         twin.learned_veto = False
         return twin
 
-    def outputs(self, obs: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
+    def outputs(self, obs: np.ndarray, prepared: dict | None = None) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
         """Each module's Q-values and the probability (N, 4, 4) its safety heads give each joint move of being
         safe (their mean; None without heads), from one pass of each network: the layers without weights run
-        once for the networks that prepare alike."""
+        once for the networks that prepare alike (``prepared``, if given, keeps what they gave, as
+        ``outputs_of``)."""
         networks = {m: self.networks[m] for m in sorted(set(self.agent_modules))}
         with torch.no_grad():
-            q, safe = outputs_of(networks, torch.from_numpy(np.ascontiguousarray(obs)))
+            q, safe = outputs_of(networks, torch.from_numpy(np.ascontiguousarray(obs)), prepared)
         return {m: v.numpy() for m, v in q.items()}, None if safe is None else safe.numpy()
 
+    def with_veto_threshold(self, threshold: float) -> Policy:
+        """The same networks, their veto keeping to the joint moves above ``threshold`` (``within_veto``)."""
+        if not (isinstance(threshold, int | float) and 0.0 <= threshold < 1.0):
+            raise PolicyError(f"veto threshold: {threshold!r} is not allowed; allowed: a number in [0, 1)")
+        twin = copy.copy(self)
+        twin.veto_threshold = float(threshold)
+        return twin
+
     def learned_safe_moves(self, obs: np.ndarray) -> np.ndarray | None:
-        """(N, leader's move, follower's move) bool: the joint moves the networks' safety heads judge safe
-        (their mean probability above one half); None without heads."""
+        """(N, leader's move, follower's move) bool: the joint moves the networks' safety heads judge safe, as
+        their veto reads them (``within_veto`` at ``veto_threshold``); None without heads."""
         safe_probability = self.outputs(obs)[1]
-        return None if safe_probability is None else safe_probability > 0.5
+        return None if safe_probability is None else within_veto(safe_probability, self.veto_threshold)
 
     def act_batch(self, obs: np.ndarray) -> np.ndarray:
         """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares
@@ -173,15 +186,17 @@ class Policy:
         joint moves the networks' safety heads judge safe where they have them (``learned_veto``)."""
         return self.act_batch_and_q(obs)[0]
 
-    def act_batch_and_q(self, obs: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def act_batch_and_q(self, obs: np.ndarray, prepared: dict | None = None
+                        ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """``act_batch``'s joint actions and each module's Q-values they came from (as ``outputs``
-        gives them), from one pass of each network."""
-        if self.shield is None and not self.learned_veto:
+        gives them, and ``prepared`` keeps), from one pass of each network."""
+        if self.shield is None and not self.learned_veto and prepared is None:
             by_module = self._q_by_module(obs)
             return team_q_values(by_module, self.agent_modules).argmax(axis=-1), by_module
-        by_module, safe_probability = self.outputs(obs)
+        by_module, safe_probability = self.outputs(obs, prepared)
         allowed = self.shield.allowed(obs) if self.shield is not None else None
-        learned = safe_probability > 0.5 if self.learned_veto and safe_probability is not None else None
+        learned = within_veto(safe_probability, self.veto_threshold) \
+            if self.learned_veto and safe_probability is not None else None
         return greedy_within(by_module, self.agent_modules, allowed, learned), by_module
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, int]:
@@ -212,7 +227,8 @@ class Policy:
         return {"format_version": FORMAT_VERSION, "game": self.game.to_dict(),
                 "networks": {m: spec.to_dict() for m, spec in sorted(self.specs.items())},
                 "agents": self.module_of, "source": self.source, "env_steps": self.env_steps,
-                "eval": dict(self.eval_settings)}
+                "eval": dict(self.eval_settings), "veto_threshold": self.veto_threshold,
+                **({"refit": self.refit_report} if self.refit_report else {})}
 
 
 def export(policy: Policy, out: str | Path, half: bool = False) -> Path:
@@ -359,8 +375,14 @@ def _load_export(folder: Path) -> Policy:
             raise PolicyError(f"export: {str(weights_file)!r} is damaged or not a state dict "
                               f"({type(err).__name__})") from None
         networks[module] = _with_weights(specs[module], weights, weights_file)
-    return Policy(game, networks, {m: specs[m] for m in networks}, agent_modules, source=str(card.get("source")),
-                  env_steps=env_steps, eval_settings=eval_settings)
+    policy = Policy(game, networks, {m: specs[m] for m in networks}, agent_modules, source=str(card.get("source")),
+                    env_steps=env_steps, eval_settings=eval_settings)
+    policy.refit_report = card.get("refit") if isinstance(card.get("refit"), dict) else None
+    threshold = card.get("veto_threshold", DEFAULT_VETO_THRESHOLD)
+    if not (isinstance(threshold, int | float) and not isinstance(threshold, bool) and 0.0 <= threshold < 1.0):
+        raise PolicyError(f"export: {str(card_file)!r} has veto_threshold {threshold!r}; allowed: a number in [0, 1)")
+    policy.veto_threshold = float(threshold)
+    return policy
 
 
 def _with_weights(spec: NetworkSpec, weights: Any, where: Path) -> DuelingQNetwork:
@@ -379,6 +401,16 @@ def _with_weights(spec: NetworkSpec, weights: Any, where: Path) -> DuelingQNetwo
             from None
     net.eval()
     return net
+
+
+def within_veto(safe_probability: np.ndarray, threshold: float) -> np.ndarray:
+    """(N, 4, 4) bool: the joint moves whose safe probability (N, 4, 4) is above ``threshold``; in a state
+    with none, those above one half (and where none is, none: ``greedy_within`` then keeps to all)."""
+    likely = safe_probability > 0.5
+    if threshold <= 0.5:
+        return likely if threshold == 0.5 else safe_probability > threshold
+    strict = safe_probability > threshold
+    return np.where(strict.any(axis=(1, 2), keepdims=True), strict, likely)
 
 
 def greedy_within(by_module: dict[str, np.ndarray], agent_modules: list[str], allowed: np.ndarray | None,

@@ -6,6 +6,7 @@
     resources: {num_rollout_actors: 1, games_per_actor: 32, num_gpus_per_learner: 0}
     eval:      {every_env_steps: 25000, episodes: 200}
     checkpoint: {every_iterations: 10}
+    refit:     {rounds: 2, episodes: 5000, horizon: 8}          # formation refit (after training)
 
 ``--set train.gamma=0.99`` style overrides use the same dotted names.
 """
@@ -297,6 +298,39 @@ class EvalSettings:
 
 
 @dataclass(frozen=True)
+class RefitSettings:
+    """``formation refit``: the safety heads of a trained team fitted again on many fresh states of its own
+    play, labelled by the planner (formation.learn.safety_refit; docs/TRAINING.md "Refitting the safety
+    heads"). Each round plays ``episodes`` games with the team as it is (vetoed greedy, a random joint move in
+    an ``epsilon`` share of the steps), labels every state with the joint moves that start ``horizon`` steps
+    free of collisions and formation breaks, and fits the heads alone (and their own encoders) for ``epochs``
+    passes over every state gathered so far; the Q-values do not change. The refitted team's veto then keeps
+    to the joint moves the heads judge safe with a probability above ``veto_threshold``."""
+
+    rounds: int = 2
+    episodes: int = 5_000  # games per round
+    epsilon: float = 0.03
+    horizon: int = 8
+    epochs: float = 3.0
+    lr: float = 3e-4
+    batch_size: int = 256
+    holdout_episodes: int = 300  # games whose states only measure the heads' wrong verdicts
+    # the refit's games come from seeds seed, seed + 1, ... (1000 games each); evaluations use 1e6, 2e6, 3e6
+    seed: int = 10_000_000
+    workers: int = 0  # processes that run the planner's labels (0: one per CPU core)
+    veto_threshold: float = 0.97
+
+    def __post_init__(self) -> None:
+        _number(self, "veto_threshold", 0.0, 0.999, section="refit")
+        for name, low in (("rounds", 1), ("episodes", 1), ("horizon", 1), ("batch_size", 1),
+                          ("holdout_episodes", 0), ("seed", 0), ("workers", 0)):
+            _integer(self, name, low, section="refit")
+        _number(self, "epsilon", 0.0, 1.0, section="refit")
+        _number(self, "epochs", 0.0, 1000.0, section="refit", low_open=True)
+        _number(self, "lr", 0.0, 1.0, section="refit", low_open=True)
+
+
+@dataclass(frozen=True)
 class CheckpointSettings:
     every_iterations: int = 10
 
@@ -305,7 +339,7 @@ class CheckpointSettings:
 
 
 SECTIONS = {"train": TrainSettings, "resources": ResourceSettings, "eval": EvalSettings,
-            "checkpoint": CheckpointSettings}
+            "checkpoint": CheckpointSettings, "refit": RefitSettings}
 
 
 @dataclass(frozen=True)
@@ -315,6 +349,7 @@ class RunConfig:
     resources: ResourceSettings = field(default_factory=ResourceSettings)
     eval: EvalSettings = field(default_factory=EvalSettings)
     checkpoint: CheckpointSettings = field(default_factory=CheckpointSettings)
+    refit: RefitSettings = field(default_factory=RefitSettings)
 
     def __post_init__(self) -> None:
         patches = self.game.obs_type == "pixels" and not self.train.screen_cells
@@ -359,16 +394,8 @@ class RunConfig:
         except TypeError as err:
             raise ConfigError(f"game: {err}") from None
         parts = {"game": game}
-        for name, kind in SECTIONS.items():
-            section = values.get(name) or {}
-            if not isinstance(section, dict):
-                raise ConfigError(f"{name}: a mapping is needed, got {section!r}")
-            known = {f.name for f in dataclasses.fields(kind)}
-            for key in section:
-                if key not in known:
-                    raise ConfigError(f"{name}.{key}: unknown key; allowed: {', '.join(sorted(known))}")
-            section = {k: tuple(v) if isinstance(v, list) else v for k, v in section.items()}
-            parts[name] = kind(**section)
+        for name in SECTIONS:
+            parts[name] = section_of(name, values.get(name))
         return cls(**parts)
 
     @classmethod
@@ -391,6 +418,19 @@ class RunConfig:
             section = dataclasses.asdict(getattr(self, name))
             out[name] = {k: list(v) if isinstance(v, tuple) else v for k, v in section.items()}
         return out
+
+
+def section_of(name: str, values: dict[str, Any] | None) -> Any:
+    """One section of a config (``SECTIONS[name]``) from its mapping; an unknown key is a one-line error."""
+    kind = SECTIONS[name]
+    values = values or {}
+    if not isinstance(values, dict):
+        raise ConfigError(f"{name}: a mapping is needed, got {values!r}")
+    known = {f.name for f in dataclasses.fields(kind)}
+    for key in values:
+        if key not in known:
+            raise ConfigError(f"{name}.{key}: unknown key; allowed: {', '.join(sorted(known))}")
+    return kind(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
 
 
 # keys added to the config after runs were saved without them, with the value those runs trained with

@@ -368,12 +368,13 @@ class DuelingQNetwork(nn.Module):
         return self.safety(self.features(x) if features is None else features)
 
 
-def outputs_of(networks: dict[str, DuelingQNetwork], obs: torch.Tensor
+def outputs_of(networks: dict[str, DuelingQNetwork], obs: torch.Tensor, prepared: dict | None = None
                ) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
     """Each network's Q-values for the same observations, and the probability (N, 4, 4) its safety heads
     give each joint move (leader's move, follower's move) of being safe, their mean (None: no heads); the
-    layers without weights run once for the networks that prepare alike, as in ``q_values_of``."""
-    prepared: dict[tuple, torch.Tensor] = {}
+    layers without weights run once for the networks that prepare alike, as in ``q_values_of``.
+    ``prepared``: a dict that keeps what they gave, by ``prepare_key``, for the caller to read."""
+    prepared = {} if prepared is None else prepared
     q, safe = {}, []
     for name, net in networks.items():
         if net.prepare_key not in prepared:

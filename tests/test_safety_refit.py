@@ -1,0 +1,242 @@
+"""``formation refit``: a trained team's safety heads fitted again on fresh states of its own play, labelled by
+the planner, while the Q-values stay as trained; the refitted team is written as an export."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from formation.cli import main
+from formation.config import ConfigError, GameConfig
+from formation.game import BatchedGame, Observer
+from formation.learn.config import RefitSettings, RunConfig
+from formation.learn.safety_refit import StateBank, label_states, refit, safety_parameters
+from formation.planner import surviving_first_moves_many
+from formation.policy import NetworkSpec, Policy, export, load
+
+SMOKE = "configs/smoke.yaml"
+GRID = GameConfig.from_setting(2, obs_type="grid", frame_stack=2, height=9, width=9, n_obstacles=2)
+
+
+def grid_team(safety_encoder: bool = True, safety: bool = True) -> Policy:
+    """A team of small untrained networks with safety heads on the 9x9 grid game."""
+    spec = NetworkSpec(obs_shape=(9, 9, 8), high=1.0, hidden=32, channels=(8, 16, 16), window=(8, 1, 8),
+                       forecast=True, safety=safety, safety_encoder=safety_encoder)
+    follower = NetworkSpec(**{**spec.__dict__, "answers_leader": True})
+    torch.manual_seed(0)
+    return Policy(GRID, {"leader": spec.build(), "follower": follower.build()}, {"leader": spec, "follower": follower},
+                  ["leader", "follower"], "test")
+
+
+def screens(setting: int, games: int = 16, steps: int = 5) -> np.ndarray:
+    game = BatchedGame(GameConfig.from_setting(setting), batch_size=games, seed=1)
+    game.reset()
+    observer = Observer(game)
+    obs = observer.observe(np.ones(games, bool))
+    rng = np.random.default_rng(0)
+    for _ in range(steps):
+        game.step(rng.integers(0, 4, (games, 2)))
+        obs = observer.observe(game.done)
+    return obs
+
+
+@pytest.mark.parametrize("key,value,message", [
+    ("rounds", 0, "refit.rounds: 0 is not allowed; allowed: an integer >= 1"),
+    ("epsilon", 1.5, "refit.epsilon: 1.5 is not allowed; allowed: a number in [0.0, 1.0]"),
+    ("horizon", "far", "refit.horizon: 'far' is not allowed; allowed: an integer >= 1"),
+    ("epochs", 0, "refit.epochs: 0 is not allowed; allowed: a number in (0.0, 1000.0]"),
+])
+def test_a_bad_refit_setting_is_one_line(key, value, message):
+    with pytest.raises(ConfigError) as err:
+        RunConfig.load(SMOKE, {f"refit.{key}": value})
+    assert str(err.value) == message
+
+
+def test_states_are_kept_a_bit_an_entry_and_read_back_as_the_network_prepares_them():
+    for setting in (2, 4):
+        obs, config = screens(setting), GameConfig.from_setting(setting)
+        net = NetworkSpec(obs_shape=obs.shape[1:], high=255.0, hidden=16, channels=(4, 8, 8), window=(12, 3, 10),
+                          frame_channels=3, cells=(config.height, config.width), forecast=True,
+                          safety=True, safety_encoder=True).build()
+        prepared = net.prepare(torch.from_numpy(obs))
+        bank = StateBank()
+        bank.add(prepared[:10])
+        bank.add(prepared[10:])
+        assert len(bank) == len(obs)
+        assert bank.nbytes == len(obs) * -(-prepared[0].numel() // 8)  # a bit an entry, rounded up to bytes
+        got = bank.batch(np.arange(len(obs)))
+        assert got.shape == prepared.shape and got.is_contiguous(memory_format=torch.channels_last)
+        assert torch.allclose(got, prepared, atol=1e-6) and got.sum() > 0
+        assert torch.allclose(bank.batch(np.array([3, 0])), prepared[[3, 0]], atol=1e-6)
+    with pytest.raises(ValueError, match="entries other than 0 and 1"):
+        StateBank().add(torch.full((1, 2, 3, 3), 0.5))
+
+
+def test_labels_are_the_planners_safe_joint_moves_bit_by_bit():
+    game = BatchedGame(GRID, batch_size=300, seed=2)
+    game.reset()
+    game.step(np.zeros((300, 2), int))
+    scenarios = [game.scenario(i) for i in np.flatnonzero(~game.done)]
+    labels = label_states(scenarios, GRID, horizon=3)
+    masks = surviving_first_moves_many(scenarios, config=GRID, horizon=3)
+    assert labels.shape == (len(scenarios), 16)
+    for row, mask in zip(labels, masks):
+        assert [bool(int(mask) >> j & 1) for j in range(16)] == row.tolist()
+    assert labels.any() and not labels.all()
+
+
+def test_refit_cuts_the_heads_wrong_verdicts_and_leaves_the_q_values_alone():
+    policy = grid_team()
+    before = {m: {k: v.clone() for k, v in net.state_dict().items()} for m, net in policy.networks.items()}
+    trained = {m: {n for part in safety_parameters(net) for n, _ in part.named_parameters()}
+               for m, net in policy.networks.items()}
+    settings = RefitSettings(rounds=2, episodes=300, horizon=2, epochs=8.0, lr=3e-3, batch_size=128,
+                             holdout_episodes=150, epsilon=0.2, workers=1)
+    lines: list[str] = []
+    report = refit(policy, settings, say=lines.append)
+    held = report["holdout"]
+    wrong_before = held["before"]["unsafe_judged_safe"] + held["before"]["safe_judged_unsafe"]
+    after = report["rounds"][-1]["holdout"]
+    wrong_after = after["unsafe_judged_safe"] + after["safe_judged_unsafe"]
+    verdicts = after["safe"] + after["unsafe"]
+    assert verdicts == 16 * held["states"] > 1000
+    # an untrained head is wrong about as often as not; refitted, far less often
+    assert wrong_before > 0.25 * verdicts and wrong_after < 0.5 * wrong_before
+    assert len(report["rounds"]) == 2 and report["rounds"][1]["states_in_all"] > report["rounds"][0]["states"]
+    assert any(line.startswith("round 2/2 done") for line in lines)
+    for module, net in policy.networks.items():
+        for name, value in net.state_dict().items():
+            learnt = name.startswith(("safety.", "safety_encoder."))
+            assert torch.equal(value, before[module][name]) != learnt, name
+        assert all(not p.requires_grad for p in net.parameters()) and not net.training
+        assert {n for n in trained[module]} == {n for n, _ in net.safety.named_parameters()} | \
+            {n for n, _ in net.safety_encoder.named_parameters()}
+
+
+def test_a_head_on_the_q_values_features_refits_alone():
+    policy = grid_team(safety_encoder=False)
+    encoder = {m: net.encoder[0].weight.clone() for m, net in policy.networks.items()}
+    head = {m: net.safety[0].weight.clone() for m, net in policy.networks.items()}
+    refit(policy, RefitSettings(rounds=1, episodes=50, horizon=2, holdout_episodes=0, workers=1), say=lambda _: None)
+    for m, net in policy.networks.items():
+        assert torch.equal(net.encoder[0].weight, encoder[m]) and not torch.equal(net.safety[0].weight, head[m])
+
+
+def test_the_refit_travels_with_the_export(tmp_path):
+    policy = grid_team()
+    report = refit(policy, RefitSettings(rounds=1, episodes=60, horizon=2, holdout_episodes=30, workers=1),
+                   say=lambda _: None)
+    policy.refit_report = report
+    reloaded = load(export(policy, tmp_path / "out"))
+    card = json.loads((tmp_path / "out" / "policy.json").read_text())
+    assert card["refit"]["settings"]["horizon"] == 2 and card["refit"]["rounds"][0]["states"] > 0
+    assert reloaded.refit_report == card["refit"]
+    game = BatchedGame(GRID, batch_size=8, seed=0)
+    game.reset()
+    obs = Observer(game).observe(np.ones(8, bool))
+    assert (reloaded.learned_safe_moves(obs) == policy.learned_safe_moves(obs)).all()
+
+
+def test_the_command_refits_an_export_into_a_new_folder(tmp_path, capsys):
+    export(grid_team(), tmp_path / "team")
+    args = ["refit", str(tmp_path / "team"), str(tmp_path / "refitted"), "--set", "refit.rounds=1",
+            "--set", "refit.episodes=40", "--set", "refit.horizon=2", "--set", "refit.holdout_episodes=20",
+            "--set", "refit.workers=1"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "round 1/1 done" in out and "wrote" in out
+    assert load(tmp_path / "refitted").refit_report["settings"]["episodes"] == 40
+    assert not (tmp_path / "refitted.partial").exists()
+    # the folder now holds a policy: a second refit into it is refused before any work
+    assert main(args) == 2
+    assert "exists and is not an empty folder" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("setting,message", [
+    ("train.lr=0.1", "--set train.lr: refit takes refit.* keys only"),
+    ("refit.speed=2", "refit.speed: unknown key; allowed: batch_size, episodes, epochs"),
+    ("refit.episodes=-3", "refit.episodes: -3 is not allowed; allowed: an integer >= 1"),
+])
+def test_the_commands_bad_input_is_one_line(tmp_path, capsys, setting, message):
+    export(grid_team(), tmp_path / "team")
+    assert main(["refit", str(tmp_path / "team"), str(tmp_path / "out"), "--set", setting]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and message in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_team_without_safety_heads_or_a_missing_one_is_one_line(tmp_path, capsys):
+    export(grid_team(safety=False, safety_encoder=False), tmp_path / "plain")
+    assert main(["refit", str(tmp_path / "plain"), str(tmp_path / "out")]) == 2
+    assert "has no safety heads" in capsys.readouterr().err
+    assert main(["refit", str(tmp_path / "nothing"), str(tmp_path / "out")]) == 2
+    assert "checkpoint: no such file or folder" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_command_takes_its_settings_from_a_run_folders_refit_section(tmp_path, capsys):
+    import pickle
+
+    import yaml
+
+    from formation.policy import RL_MODULES, run_specs
+
+    run = RunConfig.load(SMOKE, {"train.safety_horizon": 2, "train.safety_encoder": True, "refit.rounds": 1,
+                                 "refit.episodes": 30, "refit.horizon": 2, "refit.holdout_episodes": 10,
+                                 "refit.workers": 1})
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / "config.yaml").write_text(yaml.safe_dump(run.to_dict()))
+    specs, _ = run_specs(run)
+    torch.manual_seed(0)
+    for module, spec in specs.items():  # a checkpoint's module state, as RLlib saves it
+        state = {f"q_network.{k}": v.numpy() for k, v in spec.build().state_dict().items()}
+        (folder / RL_MODULES / module).mkdir(parents=True)
+        with (folder / RL_MODULES / module / "module_state.pkl").open("wb") as f:
+            pickle.dump(state, f)
+    assert main(["refit", str(folder), str(tmp_path / "out"), "--set", "refit.epochs=2"]) == 0
+    assert "1 round(s) of 30 games, labels over 2 steps" in capsys.readouterr().out
+    settings = load(tmp_path / "out").refit_report["settings"]
+    assert (settings["episodes"], settings["horizon"], settings["epochs"]) == (30, 2, 2.0)
+    assert load(tmp_path / "out").veto_threshold == settings["veto_threshold"] == 0.97
+
+
+def test_the_veto_keeps_to_moves_above_its_threshold_and_falls_back_to_one_half():
+    from formation.policy import within_veto
+
+    p = np.zeros((3, 4, 4))
+    p[0, 0, 0], p[0, 1, 1], p[0, 2, 2] = 0.99, 0.7, 0.3  # one move above 0.9
+    p[1, 0, 1], p[1, 3, 3] = 0.8, 0.6  # none above 0.9, two above one half
+    p[2] = 0.2  # none above one half: greedy_within then keeps to all moves
+    assert np.array_equal(within_veto(p, 0.5), p > 0.5)
+    strict = within_veto(p, 0.9)
+    assert strict[0].sum() == 1 and strict[0, 0, 0]
+    assert np.array_equal(strict[1], p[1] > 0.5) and not strict[2].any()
+    assert np.array_equal(within_veto(p, 0.1), p > 0.1)
+
+
+def test_the_veto_threshold_travels_with_the_export_and_bad_ones_are_one_line(tmp_path, capsys):
+    policy = grid_team().with_veto_threshold(0.9)
+    assert grid_team().veto_threshold == 0.5
+    reloaded = load(export(policy, tmp_path / "team"))
+    assert reloaded.veto_threshold == 0.9
+    game = BatchedGame(GRID, batch_size=32, seed=4)
+    game.reset()
+    obs = Observer(game).observe(np.ones(32, bool))
+    moves = reloaded.act_batch(obs)
+    kept = reloaded.learned_safe_moves(obs)
+    played = kept[np.arange(32), moves[:, 0], moves[:, 1]]
+    assert played[kept.any(axis=(1, 2))].all()
+    card = json.loads((tmp_path / "team" / "policy.json").read_text())
+    (tmp_path / "team" / "policy.json").write_text(json.dumps({**card, "veto_threshold": 1.5}))
+    with pytest.raises(ConfigError, match="has veto_threshold 1.5; allowed: a number in"):
+        load(tmp_path / "team")
+    assert main(["evaluate", str(tmp_path / "nowhere"), "--veto-threshold", "1.2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "checkpoint: no such file" in err
+    export(grid_team(), tmp_path / "fine")
+    assert main(["evaluate", str(tmp_path / "fine"), "--veto-threshold", "1.2"]) == 2
+    assert "--veto-threshold: 1.2 is not allowed; allowed: a number in [0, 1)" in capsys.readouterr().err
