@@ -72,6 +72,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     from formation.storage import local_run_folder
 
     policy = load(local_run_folder(args.checkpoint))
+    if args.veto_threshold is not None:
+        policy = policy.with_veto_threshold(_veto_threshold(args.veto_threshold))
     out = export(policy, args.dir, half=args.half)
     print(f"exported {', '.join(sorted(policy.networks))} from {args.checkpoint} to {out} ({CARD})")
     return 0
@@ -111,6 +113,12 @@ def cmd_refit(args: argparse.Namespace) -> int:
     return 0
 
 
+def _veto_threshold(value: float) -> float:
+    if not 0.0 <= value < 1.0:
+        raise ConfigError(f"--veto-threshold: {value:g} is not allowed; allowed: a number in [0, 1)")
+    return value
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     """Greedy play of a restored policy on held-out scenarios, against the clairvoyant planner."""
     import json
@@ -131,9 +139,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise ConfigError(f"--shield: {args.shield} is not allowed; allowed: an integer >= 0 (steps ahead; 0: none)")
     policy = load(local_run_folder(args.checkpoint)).shielded(args.shield)
     if args.veto_threshold is not None:
-        if not 0.0 <= args.veto_threshold < 1.0:
-            raise ConfigError(f"--veto-threshold: {args.veto_threshold:g} is not allowed; allowed: a number in [0, 1)")
-        policy = policy.with_veto_threshold(args.veto_threshold)
+        policy = policy.with_veto_threshold(_veto_threshold(args.veto_threshold))
     trained_on = policy.game.setting
     if args.setting is not None and trained_on != args.setting:
         what = f"setting {trained_on}" if trained_on is not None else \
@@ -235,6 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("dir", help="output folder: <module>.pt and policy.json")
     export.add_argument("--half", action="store_true",
                         help="store the weights as float16: half the size; evaluate the export itself")
+    export.add_argument("--veto-threshold", type=float, metavar="P",
+                        help="the exported team's veto keeps to the joint moves its safety heads judge safe with a "
+                             "probability above P (default: the policy's own)")
     export.set_defaults(run=cmd_export)
 
     refit = sub.add_parser("refit", help="refit a trained team's safety heads on fresh states of its own play, "

@@ -240,3 +240,15 @@ def test_the_veto_threshold_travels_with_the_export_and_bad_ones_are_one_line(tm
     export(grid_team(), tmp_path / "fine")
     assert main(["evaluate", str(tmp_path / "fine"), "--veto-threshold", "1.2"]) == 2
     assert "--veto-threshold: 1.2 is not allowed; allowed: a number in [0, 1)" in capsys.readouterr().err
+
+
+def test_an_export_can_set_the_veto_threshold_and_keeps_the_refit_report(tmp_path, capsys):
+    policy = grid_team()
+    policy.refit_report = {"settings": {"horizon": 2}, "rounds": []}
+    export(policy, tmp_path / "team")
+    assert main(["export", str(tmp_path / "team"), str(tmp_path / "strict"), "--veto-threshold", "0.9"]) == 0
+    strict = load(tmp_path / "strict")
+    assert strict.veto_threshold == 0.9 and strict.refit_report == policy.refit_report
+    assert main(["export", str(tmp_path / "team"), str(tmp_path / "bad"), "--veto-threshold", "-0.1"]) == 2
+    assert "--veto-threshold: -0.1 is not allowed" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
