@@ -101,7 +101,7 @@ def cmd_refit(args: argparse.Namespace) -> int:
     values = RunConfig.load_saved(saved).to_dict()["refit"] if saved.is_file() else {}
     settings = section_of("refit", {**values, **{k.partition(".")[2]: v for k, v in overrides.items()}})
     print(f"refitting the safety heads of {args.checkpoint}: {settings.rounds} round(s) of {settings.episodes:,} "
-          f"games, labels over {settings.horizon} steps, {settings.workers or 'one per core'} planner worker(s)",
+          f"games, labels over {settings.horizon} steps, planner workers: {settings.workers or 'one per core'}",
           flush=True)
     report = refit(policy, settings, say=lambda line: print(line, flush=True))
     policy.refit_report = report

@@ -97,11 +97,12 @@ class Gathered:
 
 
 def gather(policy, bank: StateBank, episodes: int, seed: int, epsilon: float, rng: np.random.Generator,
-           label: Callable[[list], list[Future]]) -> Gathered:
+           label: Callable[[list], list[Future]], progress: Callable[[int, int], None] | None = None) -> Gathered:
     """Play ``episodes`` games of the team behind its heads' veto, with a random joint move in an
     ``epsilon`` share of the steps, in parts of ``GAMES_PER_SEED`` games of seeds ``seed``, ``seed + 1``, ...;
     every state of every live game goes into ``bank``, and ``label(scenarios)`` is asked for its labels
-    part by part (a worker may label one part while the next one plays)."""
+    part by part (a worker may label one part while the next one plays); ``progress(games, states)`` after
+    each part."""
     out = Gathered()
     seen: dict = {}
     key = policy.networks[policy.agent_modules[0]].prepare_key
@@ -126,6 +127,8 @@ def gather(policy, bank: StateBank, episodes: int, seed: int, epsilon: float, rn
         out.success.append(played["summary"]["success"])
         out.labels.append(label(scenarios))
         out.states += len(scenarios)
+        if progress is not None:
+            progress(start + min(GAMES_PER_SEED, episodes - start), out.states)
     return out
 
 
@@ -242,7 +245,9 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
         for round_ in range(settings.rounds):
             t0 = time.monotonic()
             seed = settings.seed + round_ * math.ceil(settings.episodes / GAMES_PER_SEED)
-            gathered = gather(policy, bank, settings.episodes, seed, settings.epsilon, rng, label)
+            gathered = gather(policy, bank, settings.episodes, seed, settings.epsilon, rng, label,
+                              lambda games, states: say(f"  played {games:,}/{settings.episodes:,} games, {states:,} "
+                                                        f"states ({(time.monotonic() - started) / 60:.1f} min)"))
             played = time.monotonic() - t0
             safe_parts.append(labels_of(gathered))
             safe = np.concatenate(safe_parts)
@@ -255,7 +260,7 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
 
             def progress(done: int, total: int, loss: float) -> None:
                 if done % 2000 == 0 or done == total:
-                    say(f"  update {done:,}/{total:,}: loss {loss:.5f}")
+                    say(f"  update {done:,}/{total:,}: loss {loss:.5f} ({(time.monotonic() - started) / 60:.1f} min)")
             t1 = time.monotonic()
             optimizer, loss = fit(networks, bank, safe, updates, settings.lr, settings.batch_size, rng, optimizer,
                                   progress)
