@@ -182,7 +182,7 @@ def test_resume_without_checkpoint_and_bad_config_are_one_line_errors(tmp_path):
     (run / "config.yaml").write_text("game: {}\n")
     with pytest.raises(ConfigError, match=r"^--resume: --set train\.gamma would change the run being resumed; "
                                           r"allowed: train\.learning_starts, train\.lr, train\.lr_end, "
-                                          r"train\.total_env_steps, resources\.\*$"):
+                                          r"train\.total_env_steps, resources\.\*, refit\.\*$"):
         train(None, str(run), resume=True, overrides={"train.gamma": 0.9, "train.lr": 1e-4})
     with pytest.raises(ConfigError, match=r"^train\.gama: unknown key"):
         train(SMOKE, str(tmp_path / "bad"), overrides={"train.gama": 0.5})
