@@ -103,8 +103,9 @@ def cmd_refit(args: argparse.Namespace) -> int:
     print(f"refitting the safety heads of {args.checkpoint}: {settings.rounds} round(s) of {settings.episodes:,} "
           f"games, labels over {settings.horizon} steps, planner workers: {settings.workers or 'one per core'}",
           flush=True)
+    earlier = policy.refit_report  # a refit of a refitted team keeps the earlier report on its card
     report = refit(policy, settings, say=lambda line: print(line, flush=True))
-    policy.refit_report = report
+    policy.refit_report = {**report, "earlier": earlier} if earlier else report
     partial = out.with_name(out.name + ".partial")  # the export appears whole or not at all
     shutil.rmtree(partial, ignore_errors=True)
     export(policy, partial, half=args.half)

@@ -153,6 +153,13 @@ def test_the_command_refits_an_export_into_a_new_folder(tmp_path, capsys):
     # the folder now holds a policy: a second refit into it is refused before any work
     assert main(args) == 2
     assert "exists and is not an empty folder" in capsys.readouterr().err
+    # a refit of the refitted team keeps the first refit's report on its card
+    again = ["refit", str(tmp_path / "refitted"), str(tmp_path / "again"), *args[3:]]
+    again[again.index("refit.episodes=40")] = "refit.episodes=30"
+    assert main(again) == 0
+    report = load(tmp_path / "again").refit_report
+    assert report["settings"]["episodes"] == 30 and report["earlier"]["settings"]["episodes"] == 40
+    assert "earlier" not in report["earlier"]
 
 
 @pytest.mark.parametrize("setting,message", [
