@@ -55,6 +55,19 @@ def test_a_bad_refit_setting_is_one_line(key, value, message):
     assert str(err.value) == message
 
 
+@pytest.mark.parametrize("seed,bad", [(2_000_000, True), (1_999_996, True), (2_000_001, True), (1_999_995, False),
+                                      (2_000_002, False), (10_000_000, False)])
+def test_a_refit_never_plays_the_evaluations_scenarios(seed, bad):
+    # 5 rounds of 1000 games take seeds seed..seed+4, the 300 held-out games seed-1: none may be 2e6 (the test set)
+    overrides = {"refit.seed": seed, "refit.rounds": 5, "refit.episodes": 1000}
+    if bad:
+        with pytest.raises(ConfigError, match=rf"^refit\.seed: {seed} is not allowed; its games would use seeds "
+                                              rf"{seed - 1}\.\.{seed + 4}, which hold the evaluations' scenarios"):
+            RunConfig.load(SMOKE, overrides)
+    else:
+        assert RunConfig.load(SMOKE, overrides).refit.seed == seed
+
+
 def test_states_are_kept_a_bit_an_entry_and_read_back_as_the_network_prepares_them():
     for setting in (2, 4):
         obs, config = screens(setting), GameConfig.from_setting(setting)

@@ -328,6 +328,18 @@ class RefitSettings:
         _number(self, "epsilon", 0.0, 1.0, section="refit")
         _number(self, "epochs", 0.0, 1000.0, section="refit", low_open=True)
         _number(self, "lr", 0.0, 1.0, section="refit", low_open=True)
+        parts = math.ceil(self.episodes / REFIT_GAMES_PER_SEED) * self.rounds  # the seeds of its games
+        first = self.seed - math.ceil(self.holdout_episodes / REFIT_GAMES_PER_SEED)  # the held-out games' seeds
+        if any(first <= s < self.seed + parts for s in EVALUATION_SEEDS):
+            raise ConfigError(f"refit.seed: {self.seed} is not allowed; its games would use seeds {first}.."
+                              f"{self.seed + parts - 1}, which hold the evaluations' scenarios "
+                              f"({', '.join(map(str, EVALUATION_SEEDS))}); allowed: a seed whose range avoids them, "
+                              f"e.g. 10000000")
+
+
+REFIT_GAMES_PER_SEED = 1000  # a refit plays its games in parts of this many, each from a seed of its own
+# the scenario seeds of training's evaluations (eval.seed), the test scenarios and the validation scenarios
+EVALUATION_SEEDS = (1_000_000, 2_000_000, 3_000_000)
 
 
 @dataclass(frozen=True)

@@ -29,11 +29,11 @@ import torch
 
 from formation.config import ConfigError, GameConfig
 from formation.evaluate import play_greedy
+from formation.learn.config import REFIT_GAMES_PER_SEED as GAMES_PER_SEED
 from formation.learn.config import RefitSettings
 from formation.learn.qnet import N_ACTIONS, DuelingQNetwork
 from formation.planner import surviving_first_moves_many
 
-GAMES_PER_SEED = 1000  # a round plays its games in parts of this many, each from a seed of its own
 LABEL_CHUNK = 256  # scenarios per planner call: small enough for its dense deduplication (planner.py)
 JOINT = N_ACTIONS * N_ACTIONS
 
