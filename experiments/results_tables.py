@@ -4,7 +4,8 @@
 
 Each report is `formation evaluate <policy> --episodes 1000 --seed 2000000 --json docs/results/<name>.json`;
 each report's training hours are in docs/results/training_hours.json, as experiments/training_time.py
-measured them from the run folder's metrics.jsonl (with the machine, where it was not this one)."""
+measured them from the run folder's metrics.jsonl (with the machine, where it was not this one), and the
+hours of `formation refit` after it, as its export's card records them (``refit.seconds``)."""
 
 from __future__ import annotations
 
@@ -28,10 +29,12 @@ def row(name: str, r: dict, hours: float | dict | None) -> str:
     ours = r["return_mean"]
     follower = ours.get("follower", ours.get("follower_1"))
     ratio = p["return_ratio"]
-    # a number: hours on this 2-core machine; {"hours": h, "where": machine}: hours on another
-    where = f" ({hours['where']})" if isinstance(hours, dict) else ""
+    # a number: hours on this 2-core machine; {"hours": h, "where": machine}: hours on another; "refit_hours":
+    # the hours `formation refit` took after training
+    where = f" ({hours['where']})" if isinstance(hours, dict) and "where" in hours else ""
+    refit = f" + {hours['refit_hours']:.2f} h refit" if isinstance(hours, dict) and "refit_hours" in hours else ""
     hours = hours["hours"] if isinstance(hours, dict) else hours
-    time = f"{hours:.2f} h{where}" if hours is not None else "n/a"
+    time = f"{hours:.2f} h{where}{refit}" if hours is not None else "n/a"
     cells = [name, f"{r['env_steps']:,}", time,
              f"**{pct(r['success'])}** ({pct(low)}-{pct(high)})",
              pct(r["leader_collision"]), pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]),
