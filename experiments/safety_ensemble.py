@@ -2,13 +2,15 @@
 trained in different runs make the same mistakes?
 
     .venv/bin/python experiments/safety_ensemble.py policies/setting2 /tmp/p_other [--rule all]
-        [--episodes 1000] [--seed 3000000]
+        [--threshold 0.97] [--episodes 1000] [--seed 3000000]
 
 Each policy's heads give every joint move a probability of being safe (the mean of its networks'
-heads, as ``formation evaluate`` uses them). ``--rule mean``: a move is safe where the mean over the
-policies is above one half; ``--rule all``: where every policy judges it safe. The team keeps to the
-safe moves where there are some, as ``formation.policy.greedy_within`` plays. Prints the success
-rate with the first policy's heads alone and with all of them.
+heads, as ``formation evaluate`` uses them). ``--rule mean``: the mean over the policies; ``--rule all``:
+the least of them (a move is above the threshold where every policy judges it so). The team keeps to the
+moves above ``--threshold`` (default: the first policy's ``veto_threshold``) as ``formation evaluate``
+does (``formation.policy.within_veto``: where none is above it, those above one half, and where none is,
+all). Prints the success rate with the first policy's heads alone and with all of them. Two refits of one
+team (``formation refit``) share its Q-values and differ in their heads alone.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 import torch
 
 from formation.evaluate import play_greedy
-from formation.policy import PolicyError, greedy_within, load
+from formation.policy import PolicyError, greedy_within, load, within_veto
 
 
 def main() -> None:
@@ -28,6 +30,7 @@ def main() -> None:
     parser.add_argument("policies", type=Path, nargs="+",
                         help="run folders or exported policy folders; the first plays")
     parser.add_argument("--rule", choices=("mean", "all"), default="all")
+    parser.add_argument("--threshold", type=float, help="the veto's threshold (default: the first policy's)")
     parser.add_argument("--episodes", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=3_000_000)
     args = parser.parse_args()
@@ -42,20 +45,23 @@ def main() -> None:
         if policy.game != policies[0].game:
             raise SystemExit(f"{path}: trained on another game than {args.policies[0]}")
     first = policies[0]
+    threshold = first.veto_threshold if args.threshold is None else args.threshold
+    if not 0.0 <= threshold < 1.0:
+        raise SystemExit(f"--threshold: {threshold:g} not in [0, 1)")
 
     def act(obs: np.ndarray) -> np.ndarray:
         by_module, safe = first.outputs(obs)
         verdicts = [safe] + [p.outputs(obs)[1] for p in policies[1:]]
-        if args.rule == "mean":
-            learned = np.mean(verdicts, axis=0) > 0.5
-        else:
-            learned = np.all([v > 0.5 for v in verdicts], axis=0)
-        return greedy_within(by_module, first.agent_modules, None, learned)
+        combined = np.mean(verdicts, axis=0) if args.rule == "mean" else np.min(verdicts, axis=0)
+        return greedy_within(by_module, first.agent_modules, None, within_veto(combined, threshold))
 
-    alone = play_greedy(first.game, first.act_batch, args.episodes, args.seed)["summary"]
+    alone = play_greedy(first.game, first.with_veto_threshold(threshold).act_batch, args.episodes,
+                        args.seed)["summary"]
     together = play_greedy(first.game, act, args.episodes, args.seed)["summary"]
-    for name, summary in (("its own heads", alone), (f"{len(policies)} policies' heads, rule {args.rule}", together)):
-        print(f"{args.policies[0]} seed {args.seed}, {name}: success {summary['success']:.3f}, collisions "
+    for name, summary in (("its own heads", alone),
+                          (f"{len(policies)} policies' heads, rule {args.rule}", together)):
+        print(f"{args.policies[0]} seed {args.seed}, threshold {threshold:g}, {name}: "
+              f"success {summary['success']:.3f}, collisions "
               f"{summary['leader_collision']:.3f} / {summary['follower_collision']:.3f}, "
               f"breaks {summary['formation_broken']:.3f}")
 
