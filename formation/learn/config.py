@@ -339,7 +339,7 @@ class RefitSettings:
 
 REFIT_GAMES_PER_SEED = 1000  # a refit plays its games in parts of this many, each from a seed of its own
 # the scenario seeds of training's evaluations (eval.seed), the test scenarios and the validation scenarios
-EVALUATION_SEEDS = (1_000_000, 2_000_000, 3_000_000)
+EVALUATION_SEEDS = (EvalSettings.seed, 2_000_000, 3_000_000)
 
 
 @dataclass(frozen=True)

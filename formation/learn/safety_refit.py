@@ -29,8 +29,7 @@ import torch
 
 from formation.config import ConfigError, GameConfig
 from formation.evaluate import play_greedy
-from formation.learn.config import REFIT_GAMES_PER_SEED as GAMES_PER_SEED
-from formation.learn.config import RefitSettings
+from formation.learn.config import REFIT_GAMES_PER_SEED, RefitSettings
 from formation.learn.qnet import N_ACTIONS, DuelingQNetwork
 from formation.planner import surviving_first_moves_many
 
@@ -99,7 +98,7 @@ class Gathered:
 def gather(policy, bank: StateBank, episodes: int, seed: int, epsilon: float, rng: np.random.Generator,
            label: Callable[[list], list[Future]], progress: Callable[[int, int], None] | None = None) -> Gathered:
     """Play ``episodes`` games of the team behind its heads' veto, with a random joint move in an
-    ``epsilon`` share of the steps, in parts of ``GAMES_PER_SEED`` games of seeds ``seed``, ``seed + 1``, ...;
+    ``epsilon`` share of the steps, in parts of ``REFIT_GAMES_PER_SEED`` games of seeds ``seed``, ``seed + 1``, ...;
     every state of every live game goes into ``bank``, and ``label(scenarios)`` is asked for its labels
     part by part (a worker may label one part while the next one plays); ``progress(games, states)`` after
     each part."""
@@ -115,7 +114,7 @@ def gather(policy, bank: StateBank, episodes: int, seed: int, epsilon: float, rn
         actions[noisy] = rng.integers(0, N_ACTIONS, size=(int(noisy.sum()), actions.shape[1]))
         return actions
 
-    for part, start in enumerate(range(0, episodes, GAMES_PER_SEED)):
+    for part, start in enumerate(range(0, episodes, REFIT_GAMES_PER_SEED)):
         scenarios: list = []
 
         def watch(game, actions, live, scenarios=scenarios) -> None:
@@ -123,12 +122,13 @@ def gather(policy, bank: StateBank, episodes: int, seed: int, epsilon: float, rn
             bank.add(seen["prepared"][torch.from_numpy(idx)])
             scenarios.extend(game.scenario(int(i)) for i in idx)
 
-        played = play_greedy(policy.game, act, min(GAMES_PER_SEED, episodes - start), seed + part, watch=watch)
+        games = min(REFIT_GAMES_PER_SEED, episodes - start)
+        played = play_greedy(policy.game, act, games, seed + part, watch=watch)
         out.success.append(played["summary"]["success"])
         out.labels.append(label(scenarios))
         out.states += len(scenarios)
         if progress is not None:
-            progress(start + min(GAMES_PER_SEED, episodes - start), out.states)
+            progress(start + games, out.states)
     return out
 
 
@@ -216,6 +216,9 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
     workers = settings.workers or os.cpu_count() or 1
     rng = np.random.default_rng(settings.seed)
     started = time.monotonic()
+
+    def minutes() -> str:
+        return f"{(time.monotonic() - started) / 60:.1f} min"
     report: dict = {"settings": {k: getattr(settings, k) for k in settings.__dataclass_fields__}, "rounds": []}
     import multiprocessing
 
@@ -234,7 +237,7 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
         if settings.holdout_episodes:
             # seeds below the refit's own: the held-out games never overlap the ones it learns from
             held = gather(policy, holdout_bank, settings.holdout_episodes,
-                          settings.seed - math.ceil(settings.holdout_episodes / GAMES_PER_SEED),
+                          settings.seed - math.ceil(settings.holdout_episodes / REFIT_GAMES_PER_SEED),
                           settings.epsilon, rng, label)
             holdout_safe = labels_of(held)
             before = verdict_errors(networks, holdout_bank, holdout_safe)
@@ -244,10 +247,10 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
         bank, safe_parts, optimizer = StateBank(), [], None
         for round_ in range(settings.rounds):
             t0 = time.monotonic()
-            seed = settings.seed + round_ * math.ceil(settings.episodes / GAMES_PER_SEED)
+            seed = settings.seed + round_ * math.ceil(settings.episodes / REFIT_GAMES_PER_SEED)
             gathered = gather(policy, bank, settings.episodes, seed, settings.epsilon, rng, label,
                               lambda games, states: say(f"  played {games:,}/{settings.episodes:,} games, {states:,} "
-                                                        f"states ({(time.monotonic() - started) / 60:.1f} min)"))
+                                                        f"states ({minutes()})"))
             played = time.monotonic() - t0
             safe_parts.append(labels_of(gathered))
             safe = np.concatenate(safe_parts)
@@ -260,7 +263,7 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
 
             def progress(done: int, total: int, loss: float) -> None:
                 if done % 2000 == 0 or done == total:
-                    say(f"  update {done:,}/{total:,}: loss {loss:.5f} ({(time.monotonic() - started) / 60:.1f} min)")
+                    say(f"  update {done:,}/{total:,}: loss {loss:.5f} ({minutes()})")
             t1 = time.monotonic()
             optimizer, loss = fit(networks, bank, safe, updates, settings.lr, settings.batch_size, rng, optimizer,
                                   progress)
