@@ -96,7 +96,7 @@ def cmd_refit(args: argparse.Namespace) -> int:
                           f"(nothing is overwritten)")
     path = local_run_folder(args.checkpoint)
     policy = load(path)
-    check_refittable(policy)
+    check_refittable(policy, args.checkpoint)
     saved = path / "config.yaml"  # a run folder's refit section; an export's: the defaults
     values = RunConfig.load_saved(saved).to_dict()["refit"] if saved.is_file() else {}
     settings = section_of("refit", {**values, **{k.partition(".")[2]: v for k, v in overrides.items()}})

@@ -191,7 +191,7 @@ def test_the_commands_bad_input_is_one_line(tmp_path, capsys, setting, message):
 def test_a_team_without_safety_heads_or_a_missing_one_is_one_line(tmp_path, capsys):
     export(grid_team(safety=False, safety_encoder=False), tmp_path / "plain")
     assert main(["refit", str(tmp_path / "plain"), str(tmp_path / "out")]) == 2
-    assert "has no safety heads" in capsys.readouterr().err
+    assert f"refit: {tmp_path / 'plain'} has no safety heads" in capsys.readouterr().err
     assert main(["refit", str(tmp_path / "nothing"), str(tmp_path / "out")]) == 2
     assert "checkpoint: no such file or folder" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()

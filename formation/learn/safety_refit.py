@@ -195,15 +195,16 @@ def fit(networks: dict[str, DuelingQNetwork], bank: StateBank, safe: np.ndarray,
     return optimizer, float(np.mean(recent)) if recent else math.nan
 
 
-def check_refittable(policy) -> None:
-    """A one-line ``ConfigError`` unless ``refit`` can work on ``policy``: networks with safety heads (one
-    follower), reading their observations alike."""
+def check_refittable(policy, name: str | None = None) -> None:
+    """A one-line ``ConfigError`` unless ``refit`` can work on ``policy`` (called ``name``, else by its source):
+    networks with safety heads (one follower), reading their observations alike."""
+    name = name or policy.source
     if not policy.learned_veto:
-        raise ConfigError(f"refit: {policy.source} has no safety heads (it trained with train.safety_horizon: 0); "
+        raise ConfigError(f"refit: {name} has no safety heads (it trained with train.safety_horizon: 0); "
                           "allowed: a policy trained with train.safety_horizon > 0")
     keys = {policy.networks[m].prepare_key for m in policy.agent_modules}
     if len(keys) > 1:
-        raise ConfigError(f"refit: {policy.source}'s networks read their observations differently; "
+        raise ConfigError(f"refit: {name}'s networks read their observations differently; "
                           "allowed: networks that prepare alike (as training builds them)")
 
 
