@@ -8,8 +8,8 @@ Each policy's heads give every joint move a probability of being safe (the mean 
 heads, as ``formation evaluate`` uses them). ``--rule mean``: the mean over the policies; ``--rule all``:
 the least of them (a move is above the threshold where every policy judges it so). The team keeps to the
 moves above ``--threshold`` (default: the first policy's ``veto_threshold``) as ``formation evaluate``
-does (``formation.policy.within_veto``: where none is above it, those above one half, and where none is,
-all). Prints the success rate with the first policy's heads alone and with all of them. Two refits of one
+does (``formation.policy.within_veto``: where none is above it, those the first policy's ``veto_fallback``
+names). Prints the success rate with the first policy's heads alone and with all of them. Two refits of one
 team (``formation refit``) share its Q-values and differ in their heads alone.
 """
 
@@ -53,7 +53,8 @@ def main() -> None:
         by_module, safe = first.outputs(obs)
         verdicts = [safe] + [p.outputs(obs)[1] for p in policies[1:]]
         combined = np.mean(verdicts, axis=0) if args.rule == "mean" else np.min(verdicts, axis=0)
-        return greedy_within(by_module, first.agent_modules, None, within_veto(combined, threshold))
+        kept = within_veto(combined, threshold, first.veto_fallback)
+        return greedy_within(by_module, first.agent_modules, None, kept)
 
     alone = play_greedy(first.game, first.with_veto_threshold(threshold).act_batch, args.episodes,
                         args.seed)["summary"]

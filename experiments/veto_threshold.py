@@ -5,8 +5,9 @@ set), on the same scenarios (``Policy.with_veto_threshold``).
 
     .venv/bin/python experiments/veto_threshold.py policies/setting4 [--thresholds 0.5 0.7 0.9] [--seed 3000000]
 
-Where no joint move is above a threshold, the team keeps to those above one half, and where none is, to
-all (as ``formation evaluate``). Prints one summary per threshold.
+Where no joint move is above a threshold, the team keeps to those the policy's ``veto_fallback`` names
+(as ``formation evaluate``; ``--veto-fallback`` of ``formation evaluate`` to try the other). Prints one
+summary per threshold.
 """
 
 from __future__ import annotations

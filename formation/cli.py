@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from formation.config import ConfigError, GameConfig, RunFailed
-from formation.learn.config import yaml_value
+from formation.learn.config import VETO_FALLBACKS, yaml_value
 
 CHECKPOINT_HELP = "a run folder (or its storage URI), its checkpoint/ folder, or a `formation export` folder"
 
@@ -74,6 +74,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     policy = load(local_run_folder(args.checkpoint))
     if args.veto_threshold is not None:
         policy = policy.with_veto_threshold(_veto_threshold(args.veto_threshold))
+    if args.veto_fallback is not None:
+        policy = policy.with_veto_fallback(args.veto_fallback)
     out = export(policy, args.dir, half=args.half)
     print(f"exported {', '.join(sorted(policy.networks))} from {args.checkpoint} to {out} ({CARD})")
     return 0
@@ -141,6 +143,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     policy = load(local_run_folder(args.checkpoint)).shielded(args.shield)
     if args.veto_threshold is not None:
         policy = policy.with_veto_threshold(_veto_threshold(args.veto_threshold))
+    if args.veto_fallback is not None:
+        policy = policy.with_veto_fallback(args.veto_fallback)
     trained_on = policy.game.setting
     if args.setting is not None and trained_on != args.setting:
         what = f"setting {trained_on}" if trained_on is not None else \
@@ -165,11 +169,13 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     report = evaluate_policy(policy.game, policy.act_batch, episodes, seed, workers=workers, progress=progress)
     report = {"checkpoint": str(args.checkpoint), "setting": trained_on, "env_steps": policy.env_steps,
               "shield": args.shield, "veto_threshold": policy.veto_threshold if policy.learned_veto else None,
+              "veto_fallback": policy.veto_fallback if policy.learned_veto else None,
               **report}
     print(f"{args.checkpoint}: {episodes} greedy episodes"
           + (f" after {policy.env_steps:,} env steps" if policy.env_steps is not None else "")
           + (f", behind a shield of {args.shield} steps" if args.shield else "")
-          + (f", veto above {policy.veto_threshold:g}" if policy.learned_veto else ""))
+          + (f", veto above {policy.veto_threshold:g} (else {policy.veto_fallback.replace('_', ' ')})"
+             if policy.learned_veto else ""))
     print(format_report(report))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
@@ -235,6 +241,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--veto-threshold", type=float, metavar="P",
                           help="keep to the joint moves the safety heads judge safe with a probability above P "
                                "(default: the policy's own, 0.5 or what formation refit set)")
+    evaluate.add_argument("--veto-fallback", choices=VETO_FALLBACKS,
+                          help="where no joint move is above the threshold, keep to those above one half (and where "
+                               "none is, to all) or to the most probably safe (default: the policy's own)")
     evaluate.set_defaults(run=cmd_evaluate)
 
     export = sub.add_parser("export", help="write a checkpoint's networks and a policy card for torch alone")
@@ -245,6 +254,10 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--veto-threshold", type=float, metavar="P",
                         help="the exported team's veto keeps to the joint moves its safety heads judge safe with a "
                              "probability above P (default: the policy's own)")
+    export.add_argument("--veto-fallback", choices=VETO_FALLBACKS,
+                        help="where no joint move is above the threshold, the exported team's veto keeps to those "
+                             "above one half (and where none is, to all) or to the most probably safe (default: "
+                             "the policy's own)")
     export.set_defaults(run=cmd_export)
 
     refit = sub.add_parser("refit", help="refit a trained team's safety heads on fresh states of its own play, "

@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from formation.config import ConfigError, GameConfig
+from formation.learn.config import VETO_FALLBACKS
 from formation.learn.qnet import N_ACTIONS, DuelingQNetwork, outputs_of, team_q_values
 from formation.shield import Shield, shielded_moves
 
@@ -109,6 +110,7 @@ class Policy:
         self.refit_report: dict | None = None  # what `formation refit` did to the safety heads, if it did
         # greedy play keeps to the joint moves whose mean safe probability is above this (``within_veto``)
         self.veto_threshold = DEFAULT_VETO_THRESHOLD
+        self.veto_fallback = VETO_FALLBACKS[0]  # where no joint move is above it (``within_veto``)
         # networks with a safety head (train.safety_horizon) keep greedy play to the joint moves it judges safe
         self.learned_veto = any(net.safety is not None for net in networks.values())
         for net in networks.values():
@@ -174,11 +176,21 @@ class Policy:
         twin.veto_threshold = float(threshold)
         return twin
 
+    def with_veto_fallback(self, fallback: str) -> Policy:
+        """The same networks, their veto keeping, where no joint move is above the threshold, to those
+        ``fallback`` names (``within_veto``)."""
+        if fallback not in VETO_FALLBACKS:
+            raise PolicyError(f"veto fallback: {fallback!r} is not allowed; allowed: {', '.join(VETO_FALLBACKS)}")
+        twin = copy.copy(self)
+        twin.veto_fallback = fallback
+        return twin
+
     def learned_safe_moves(self, obs: np.ndarray) -> np.ndarray | None:
         """(N, leader's move, follower's move) bool: the joint moves the networks' safety heads judge safe, as
         their veto reads them (``within_veto`` at ``veto_threshold``); None without heads."""
         safe_probability = self.outputs(obs)[1]
-        return None if safe_probability is None else within_veto(safe_probability, self.veto_threshold)
+        return None if safe_probability is None else within_veto(safe_probability, self.veto_threshold,
+                                                                 self.veto_fallback)
 
     def act_batch(self, obs: np.ndarray) -> np.ndarray:
         """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares
@@ -195,7 +207,7 @@ class Policy:
             return team_q_values(by_module, self.agent_modules).argmax(axis=-1), by_module
         by_module, safe_probability = self.outputs(obs, prepared)
         allowed = self.shield.allowed(obs) if self.shield is not None else None
-        learned = within_veto(safe_probability, self.veto_threshold) \
+        learned = within_veto(safe_probability, self.veto_threshold, self.veto_fallback) \
             if self.learned_veto and safe_probability is not None else None
         return greedy_within(by_module, self.agent_modules, allowed, learned), by_module
 
@@ -228,6 +240,7 @@ class Policy:
                 "networks": {m: spec.to_dict() for m, spec in sorted(self.specs.items())},
                 "agents": self.module_of, "source": self.source, "env_steps": self.env_steps,
                 "eval": dict(self.eval_settings), "veto_threshold": self.veto_threshold,
+                "veto_fallback": self.veto_fallback,
                 **({"refit": self.refit_report} if self.refit_report else {})}
 
 
@@ -382,6 +395,11 @@ def _load_export(folder: Path) -> Policy:
     if not (isinstance(threshold, int | float) and not isinstance(threshold, bool) and 0.0 <= threshold < 1.0):
         raise PolicyError(f"export: {str(card_file)!r} has veto_threshold {threshold!r}; allowed: a number in [0, 1)")
     policy.veto_threshold = float(threshold)
+    fallback = card.get("veto_fallback", VETO_FALLBACKS[0])
+    if fallback not in VETO_FALLBACKS:
+        raise PolicyError(f"export: {str(card_file)!r} has veto_fallback {fallback!r}; allowed: "
+                          f"{', '.join(VETO_FALLBACKS)}")
+    policy.veto_fallback = fallback
     return policy
 
 
@@ -403,14 +421,19 @@ def _with_weights(spec: NetworkSpec, weights: Any, where: Path) -> DuelingQNetwo
     return net
 
 
-def within_veto(safe_probability: np.ndarray, threshold: float) -> np.ndarray:
+def within_veto(safe_probability: np.ndarray, threshold: float, fallback: str = VETO_FALLBACKS[0]) -> np.ndarray:
     """(N, 4, 4) bool: the joint moves whose safe probability (N, 4, 4) is above ``threshold``; in a state
-    with none, those above one half (and where none is, none: ``greedy_within`` then keeps to all)."""
-    likely = safe_probability > 0.5
-    if threshold <= 0.5:
-        return likely if threshold == 0.5 else safe_probability > threshold
+    with none, by ``fallback``: ``above_half``, those above one half (and where none is, none:
+    ``greedy_within`` then keeps to all); ``most_probable``, the joint moves of the highest probability."""
+    if fallback not in VETO_FALLBACKS:
+        raise ValueError(f"fallback: {fallback!r} is not allowed; allowed: {', '.join(VETO_FALLBACKS)}")
     strict = safe_probability > threshold
-    return np.where(strict.any(axis=(1, 2), keepdims=True), strict, likely)
+    if fallback == "most_probable":
+        best = safe_probability >= safe_probability.max(axis=(1, 2), keepdims=True)
+        return np.where(strict.any(axis=(1, 2), keepdims=True), strict, best)
+    if threshold <= 0.5:
+        return strict
+    return np.where(strict.any(axis=(1, 2), keepdims=True), strict, safe_probability > 0.5)
 
 
 def greedy_within(by_module: dict[str, np.ndarray], agent_modules: list[str], allowed: np.ndarray | None,

@@ -48,6 +48,7 @@ def screens(setting: int, games: int = 16, steps: int = 5) -> np.ndarray:
     ("epsilon", 1.5, "refit.epsilon: 1.5 is not allowed; allowed: a number in [0.0, 1.0]"),
     ("horizon", "far", "refit.horizon: 'far' is not allowed; allowed: an integer >= 1"),
     ("epochs", 0, "refit.epochs: 0 is not allowed; allowed: a number in (0.0, 1000.0]"),
+    ("veto_fallback", "all", "refit.veto_fallback: 'all' is not allowed; allowed: above_half, most_probable"),
 ])
 def test_a_bad_refit_setting_is_one_line(key, value, message):
     with pytest.raises(ConfigError) as err:
@@ -222,6 +223,7 @@ def test_the_command_takes_its_settings_from_a_run_folders_refit_section(tmp_pat
     settings = load(tmp_path / "out").refit_report["settings"]
     assert (settings["episodes"], settings["horizon"], settings["epochs"]) == (30, 2, 2.0)
     assert load(tmp_path / "out").veto_threshold == settings["veto_threshold"] == 0.97
+    assert load(tmp_path / "out").veto_fallback == settings["veto_fallback"] == "most_probable"
 
 
 def test_the_veto_keeps_to_moves_above_its_threshold_and_falls_back_to_one_half():
@@ -236,6 +238,58 @@ def test_the_veto_keeps_to_moves_above_its_threshold_and_falls_back_to_one_half(
     assert strict[0].sum() == 1 and strict[0, 0, 0]
     assert np.array_equal(strict[1], p[1] > 0.5) and not strict[2].any()
     assert np.array_equal(within_veto(p, 0.1), p > 0.1)
+    assert np.array_equal(within_veto(p, 0.9, "above_half"), strict)
+
+
+def test_the_veto_can_fall_back_to_the_most_probably_safe_moves_instead():
+    from formation.policy import within_veto
+
+    p = np.zeros((3, 4, 4))
+    p[0, 0, 0], p[0, 1, 1], p[0, 2, 2] = 0.99, 0.98, 0.3  # two moves above 0.97: both kept, as before
+    p[1, 0, 1], p[1, 3, 3], p[1, 2, 0] = 0.8, 0.96, 0.6  # none above 0.97: the likeliest alone, not all above 1/2
+    p[2] = 0.2
+    p[2, 1, 2] = 0.25  # none above one half either: still the likeliest, not every move
+    kept = within_veto(p, 0.97, "most_probable")
+    assert np.array_equal(kept[0], p[0] > 0.97)
+    assert kept[1].sum() == 1 and kept[1, 3, 3]
+    assert kept[2].sum() == 1 and kept[2, 1, 2]
+    assert within_veto(np.full((1, 4, 4), 0.4), 0.97, "most_probable").all()  # ties: all of them
+    with pytest.raises(ValueError, match="fallback: 'all' is not allowed"):
+        within_veto(p, 0.97, "all")
+
+
+def test_the_veto_fallback_travels_with_the_export_and_bad_ones_are_one_line(tmp_path, capsys):
+    assert grid_team().veto_fallback == "above_half"
+    reloaded = load(export(grid_team().with_veto_threshold(0.9).with_veto_fallback("most_probable"), tmp_path / "team"))
+    assert reloaded.veto_fallback == "most_probable"
+    game = BatchedGame(GRID, batch_size=32, seed=4)
+    game.reset()
+    obs = Observer(game).observe(np.ones(32, bool))
+    moves, (_, p) = reloaded.act_batch(obs), reloaded.outputs(obs)
+    chosen = p[np.arange(32), moves[:, 0], moves[:, 1]]
+    none_above = ~(p > reloaded.veto_threshold).any(axis=(1, 2))
+    assert none_above.any()
+    assert np.allclose(chosen[none_above], p[none_above].max(axis=(1, 2)))  # where none is above: the likeliest
+    card_file = tmp_path / "team" / "policy.json"
+    card = json.loads(card_file.read_text())
+    assert card["veto_fallback"] == "most_probable"
+    card_file.write_text(json.dumps({k: v for k, v in card.items() if k != "veto_fallback"}))
+    assert load(tmp_path / "team").veto_fallback == "above_half"  # cards from before the choice
+    card_file.write_text(json.dumps({**card, "veto_fallback": "all"}))
+    with pytest.raises(ConfigError, match="has veto_fallback 'all'; allowed: above_half, most_probable$"):
+        load(tmp_path / "team")
+    export(grid_team(), tmp_path / "fine")
+    assert main(["export", str(tmp_path / "fine"), str(tmp_path / "out"), "--veto-fallback", "most_probable"]) == 0
+    assert load(tmp_path / "out").veto_fallback == "most_probable"
+    report = tmp_path / "report.json"
+    assert main(["evaluate", str(tmp_path / "out"), "--episodes", "8", "--workers", "1", "--veto-fallback",
+                 "above_half", "--json", str(report)]) == 0
+    assert json.loads(report.read_text())["veto_fallback"] == "above_half"
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(["evaluate", str(tmp_path / "out"), "--veto-fallback", "all"])
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "--veto-fallback: invalid choice: 'all'" in err and "'most_probable'" in err
 
 
 def test_the_veto_threshold_travels_with_the_export_and_bad_ones_are_one_line(tmp_path, capsys):

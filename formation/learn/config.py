@@ -305,7 +305,8 @@ class RefitSettings:
     an ``epsilon`` share of the steps), labels every state with the joint moves that start ``horizon`` steps
     free of collisions and formation breaks, and fits the heads alone (and their own encoders) for ``epochs``
     passes over every state gathered so far; the Q-values do not change. The refitted team's veto then keeps
-    to the joint moves the heads judge safe with a probability above ``veto_threshold``."""
+    to the joint moves the heads judge safe with a probability above ``veto_threshold``, and where none is, to
+    those ``veto_fallback`` names (``formation.policy.within_veto``)."""
 
     rounds: int = 2
     episodes: int = 5_000  # games per round
@@ -319,9 +320,13 @@ class RefitSettings:
     seed: int = 10_000_000
     workers: int = 0  # processes that run the planner's labels (0: one per CPU core)
     veto_threshold: float = 0.97
+    veto_fallback: str = "most_probable"  # or "above_half", the rule before it
 
     def __post_init__(self) -> None:
         _number(self, "veto_threshold", 0.0, 0.999, section="refit")
+        if self.veto_fallback not in VETO_FALLBACKS:
+            raise ConfigError(f"refit.veto_fallback: {self.veto_fallback!r} is not allowed; allowed: "
+                              f"{', '.join(VETO_FALLBACKS)}")
         for name, low in (("rounds", 1), ("episodes", 1), ("horizon", 1), ("batch_size", 1),
                           ("holdout_episodes", 0), ("seed", 0), ("workers", 0)):
             _integer(self, name, low, section="refit")
@@ -337,6 +342,10 @@ class RefitSettings:
                               f"e.g. 10000000")
 
 
+# where no joint move is above the veto's threshold, it keeps to those above one half (and where none is, to all),
+# or to the most probably safe (formation.policy.within_veto); cards without ``veto_fallback`` read as the first,
+# the rule before there was a choice
+VETO_FALLBACKS = ("above_half", "most_probable")
 REFIT_GAMES_PER_SEED = 1000  # a refit plays its games in parts of this many, each from a seed of its own
 # the scenario seeds of training's evaluations (eval.seed), the test scenarios and the validation scenarios
 EVALUATION_SEEDS = (EvalSettings.seed, 2_000_000, 3_000_000)

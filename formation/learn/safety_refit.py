@@ -276,7 +276,7 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
             report["rounds"].append(entry)
             say(f"round {round_ + 1}/{settings.rounds} done in {time.monotonic() - t0:.0f} s: loss {loss:.5f}"
                 + (f"; held-out wrong verdicts: {_errors_line(entry['holdout'])}" if holdout_safe is not None else ""))
-    policy.veto_threshold = settings.veto_threshold
+    policy.veto_threshold, policy.veto_fallback = settings.veto_threshold, settings.veto_fallback
     report["seconds"] = time.monotonic() - started
     return report
 
