@@ -189,8 +189,11 @@ class Policy:
         """(N, leader's move, follower's move) bool: the joint moves the networks' safety heads judge safe, as
         their veto reads them (``within_veto`` at ``veto_threshold``); None without heads."""
         safe_probability = self.outputs(obs)[1]
-        return None if safe_probability is None else within_veto(safe_probability, self.veto_threshold,
-                                                                 self.veto_fallback)
+        return None if safe_probability is None else self._veto(safe_probability)
+
+    def _veto(self, safe_probability: np.ndarray) -> np.ndarray:
+        """``within_veto`` at this policy's ``veto_threshold`` and ``veto_fallback``."""
+        return within_veto(safe_probability, self.veto_threshold, self.veto_fallback)
 
     def act_batch(self, obs: np.ndarray) -> np.ndarray:
         """Greedy joint actions (N, 1+k) for a batch of observations (N, h, w, c) every agent shares
@@ -207,8 +210,7 @@ class Policy:
             return team_q_values(by_module, self.agent_modules).argmax(axis=-1), by_module
         by_module, safe_probability = self.outputs(obs, prepared)
         allowed = self.shield.allowed(obs) if self.shield is not None else None
-        learned = within_veto(safe_probability, self.veto_threshold, self.veto_fallback) \
-            if self.learned_veto and safe_probability is not None else None
+        learned = self._veto(safe_probability) if self.learned_veto and safe_probability is not None else None
         return greedy_within(by_module, self.agent_modules, allowed, learned), by_module
 
     def act(self, observations: dict[str, np.ndarray]) -> dict[str, int]:
