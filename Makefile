@@ -1,5 +1,9 @@
 # `make run` and `make test` each create (or reuse) the project's environment in .venv/.
 PYTHON ?= python3
+# torch's CPU build. This machine keeps the wheel in pip's local cache; elsewhere take it from
+# PyTorch's own CPU wheel index: make TORCH_INDEX=https://download.pytorch.org/whl/cpu test
+TORCH ?= torch==2.13.0
+TORCH_INDEX ?=
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -9,8 +13,8 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	# CPU build of torch from the local wheel cache first, so nothing pulls a multi-GB CUDA build.
-	$(BIN)/python -m pip install -q torch==2.13.0
+	# the CPU build of torch first, so nothing pulls a multi-GB CUDA build
+	$(BIN)/python -m pip install -q '$(TORCH)' $(if $(TORCH_INDEX),--index-url '$(TORCH_INDEX)')
 	$(BIN)/python -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
