@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import gymnasium
 import numpy as np
 import pytest
-from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test
+from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test, seed_test, state_test
 
 import formation.env as fenv
+import formation.env.pettingzoo as pettingzoo_card
 from formation.config import GameConfig
-from formation.game import BatchedGame, Observer
+from formation.game import BatchedGame, GridRenderer, Observer, ScreenRenderer
 
 # PettingZoo recommends names like "player_0"; the spec fixes "leader" and "follower".
 NAMING = "ignore:We recommend agents to be named"
@@ -43,6 +45,151 @@ def test_parallel_seed_test(args):
                          ids=lambda a: "-".join(f"{k}={v}" for k, v in a.items()))
 def test_aec_api_test(args):
     api_test(fenv.env(**args), num_cycles=40)
+
+
+@pytest.mark.parametrize("args", [dict(setting=1), dict(setting=2, n_followers=2)],
+                         ids=lambda a: "-".join(f"{k}={v}" for k, v in a.items()))
+def test_aec_seed_test(args):
+    seed_test(lambda: fenv.env(**args), num_cycles=40)
+
+
+# --------------------------------------------------------------------------- state() and state_space
+STATE_ARGS = [dict(setting=1), dict(setting=4, n_followers=2), dict(setting=2, obs_type="grid", frame_stack=2),
+              dict(setting=1, max_steps=2, n_obstacles=0)]
+
+
+@pytest.mark.filterwarnings(NAMING)
+@pytest.mark.filterwarnings("error")  # PettingZoo's state checks warn (all zeros, bad shapes): fail on them
+@pytest.mark.parametrize("args", STATE_ARGS, ids=lambda a: "-".join(f"{k}={v}" for k, v in a.items()))
+def test_state_test(args):
+    state_test(fenv.env(**args), fenv.parallel_env(**args), num_cycles=40)
+
+
+def test_state_space_is_one_frame_of_the_observation():
+    pixels = fenv.parallel_env(1)
+    assert pixels.state_space == gymnasium.spaces.Box(0, 255, (84, 84, 3), np.uint8)
+    grid = fenv.parallel_env(3, obs_type="grid")
+    assert grid.state_space == gymnasium.spaces.Box(0, 1, (50, 50, 4), np.uint8)
+    aec = fenv.env(3, obs_type="grid")  # PettingZoo's conversion carries it
+    assert aec.state_space == grid.state_space
+
+
+def _spec_screen(scenario: dict, H: int, W: int) -> np.ndarray:
+    """The spec's screen drawn directly from its formula (GAME.md, 'Screen'), independent of the renderer."""
+    screen = np.zeros((84, 84, 3), np.uint8)
+
+    def paint(r, c, colour):
+        screen[(168 * r + H) // (2 * H):(168 * (r + 1) + H) // (2 * H),
+               (168 * c + W) // (2 * W):(168 * (c + 1) + W) // (2 * W)] = colour
+
+    paint(0, W // 2, (255, 255, 255))
+    for r, c, _v in scenario["obstacles"]:
+        paint(r, c, (255, 0, 0))
+    for r, c in scenario.get("followers", [scenario.get("follower")]):
+        paint(r, c, (0, 255, 0))
+    paint(*scenario["leader"], (0, 0, 255))
+    return screen
+
+
+@pytest.mark.parametrize("args", [dict(setting=1), dict(setting=3, n_followers=2)],
+                         ids=lambda a: "-".join(f"{k}={v}" for k, v in a.items()))
+def test_state_is_the_present_screen(args):
+    env = fenv.parallel_env(render_mode="rgb_array", **args)
+    config = env.config
+    obs, _ = env.reset(seed=5)
+    rng = np.random.default_rng(0)
+    steps = 0
+    while env.agents and steps < 30:
+        state = env.state()
+        assert state.dtype == np.uint8 and env.state_space.contains(state)
+        np.testing.assert_array_equal(state, _spec_screen(env.scenario(), config.height, config.width))
+        np.testing.assert_array_equal(state, env.render())
+        np.testing.assert_array_equal(state, obs["leader"][..., -3:])  # the newest frame of the stack
+        # Drawn by a fresh renderer from the scenario alone: the state holds nothing else.
+        game = BatchedGame(config, 1)
+        game.load([env.scenario()])
+        np.testing.assert_array_equal(state, ScreenRenderer(game).render()[0])
+        obs, *_ = env.step({a: 3 if steps % 2 else int(rng.integers(0, 4)) for a in env.agents})
+        assert not np.array_equal(env.state(), state)  # obstacles always move
+        steps += 1
+    assert steps >= 2
+
+
+def test_state_is_the_present_grid():
+    env = fenv.parallel_env(2, obs_type="grid", frame_stack=2)
+    config = env.config
+    obs, _ = env.reset(seed=1)
+    for _ in range(5):
+        state = env.state()
+        assert state.shape == (25, 25, 4) and env.state_space.contains(state)
+        np.testing.assert_array_equal(state, obs["follower"][..., -4:])
+        scenario = env.scenario()
+        planes = np.zeros((25, 25, 4), np.uint8)
+        planes[0, 12, 0] = 1
+        for r, c, _v in scenario["obstacles"]:
+            planes[r, c, 1] = 1
+        planes[(*scenario["follower"], 2)] = 1
+        planes[(*scenario["leader"], 3)] = 1
+        np.testing.assert_array_equal(state, planes)
+        game = BatchedGame(config, 1)
+        game.load([scenario])
+        np.testing.assert_array_equal(state, GridRenderer(game).render()[0])
+        obs, *_ = env.step({a: 3 for a in env.agents})
+        assert not np.array_equal(env.state(), state)
+        if not env.agents:
+            break
+
+
+def test_state_is_a_copy_and_survives_the_episode_end():
+    env = fenv.parallel_env(1)
+    env.reset(options={"scenario": {"leader": [1, 12], "follower": [1, 10], "obstacles": []}})
+    state = env.state()
+    state[:] = 0
+    assert env.state().any()
+    env.step({"leader": 0, "follower": 0})  # the leader reaches the destination
+    assert not env.agents
+    final = env.state()
+    leader_px = final[(168 * 0 + 25) // 50, (168 * 12 + 25) // 50]
+    assert leader_px.tolist() == [0, 0, 255]  # the leader is drawn on the destination
+
+
+def test_state_through_the_aec_env():
+    aec = fenv.env(1)
+    aec.reset(seed=2)
+    par = fenv.parallel_env(1)
+    par.reset(seed=2)
+    np.testing.assert_array_equal(aec.state(), par.state())
+    aec.step(1)
+    np.testing.assert_array_equal(aec.state(), par.state())  # nothing moves until every agent acted
+    aec.step(2)
+    par.step({"leader": 1, "follower": 2})
+    np.testing.assert_array_equal(aec.state(), par.state())
+    assert aec.state_space.contains(aec.state())
+
+
+def test_seeded_states_repeat():
+    def run():
+        env = fenv.parallel_env(3, obs_type="grid", frame_stack=1)
+        env.reset(seed=9)
+        states = [env.state()]
+        for _ in range(6):
+            env.step({a: 3 for a in env.agents})
+            states.append(env.state())
+            if not env.agents:
+                break
+        return np.stack(states)
+
+    np.testing.assert_array_equal(run(), run())
+
+
+def test_versioned_name_and_card():
+    env = fenv.parallel_env(1)
+    name = env.metadata["name"]
+    assert name == "formation_v1"
+    assert env.metadata["render_modes"] == ["rgb_array"]
+    doc = pettingzoo_card.__doc__
+    assert f"``{name}``" in doc and "v1:" in doc and "state shape" in doc and "parallel API" in doc
+    assert fenv.env(1).metadata["name"] == name
 
 
 def test_aec_env_plays_a_scenario():

@@ -1,5 +1,6 @@
-"""Views of the game for RL libraries: PettingZoo (parallel and AEC) and, in ``formation.env.rllib``,
-RLlib's ``MultiAgentEnv`` (imported separately so that PettingZoo users need no Ray)."""
+"""Views of the game for RL libraries: PettingZoo's ``formation_v1`` (parallel and AEC; its card is
+the docstring of ``formation.env.pettingzoo``) and, in ``formation.env.rllib``, RLlib's
+``MultiAgentEnv`` (imported separately so that PettingZoo users need no Ray)."""
 
 from __future__ import annotations
 

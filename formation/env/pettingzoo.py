@@ -1,20 +1,40 @@
-"""Formation, the PettingZoo environment.
+"""Formation, the PettingZoo environment (``formation_v1``).
 
 | | |
 | --- | --- |
-| agents | ``leader``, ``follower`` (or ``follower_1`` .. ``follower_k`` with ``n_followers=k``) |
-| actions | ``Discrete(4)``: 0 F (forward), 1 FL (left forward), 2 FR (right forward), 3 S (stay) |
-| observations | ``Box(0, 255, (84, 84, 3*frame_stack), uint8)``: the last ``frame_stack`` RGB screens, oldest first |
-| grid observations | ``Box(0, 1, (H, W, 4*frame_stack), uint8)`` with ``obs_type="grid"``: one plane per entity kind |
-| arguments | ``setting`` (1-4) and any ``GameConfig`` field; ``render_mode="rgb_array"`` |
+| import | ``from formation.env import parallel_env, env`` |
+| actions | simultaneous |
+| parallel API | yes (``parallel_env``; ``env()`` is PettingZoo's AEC conversion of it) |
+| manual control | no |
+| agents | ``agents = ["leader", "follower"]``; ``["leader", "follower_1", .., "follower_k"]`` with ``n_followers=k`` |
+| number of agents | ``1 + n_followers`` (2 by default) |
+| action shape | ``Discrete(4)``: 0 F (forward), 1 FL (left forward), 2 FR (right forward), 3 S (stay) |
+| observation shape | ``(84, 84, 3*frame_stack)``: the last ``frame_stack`` RGB screens, oldest first |
+| observation values | ``uint8`` in ``[0, 255]``; with ``obs_type="grid"``: ``(H, W, 4*frame_stack)`` in ``[0, 1]`` |
+| state shape | ``(84, 84, 3)``: the present screen; with ``obs_type="grid"``: ``(H, W, 4)``, the present grid |
+| state values | ``uint8`` in ``[0, 255]``; grid: ``[0, 1]`` |
+| render modes | ``None``, ``"rgb_array"`` (the present screen whatever the observation type) |
 | rules | ``shared/spec/GAME.md`` |
 
-Every agent observes the same full screen. ``reset(options={"scenario": S})`` starts from a
-scenario; ``env.scenario()`` reads the present one. Infos per agent: ``position``, ``collided``,
-``formation_kept``, ``distance`` (a follower's own distance to the leader; the leader's is the
-distance to its farthest follower), ``reached``, ``success``, ``steps``.
+Every agent observes the same full screen. ``state()`` is the global state as one frame of the
+observation type, unstacked: the screen the renderer draws for the present game (pixels), or its
+four 0/1 planes destination, obstacles, followers, leader (grid). It is what every agent's newest
+observation frame shows, so with ``frame_stack=1`` it equals each agent's observation.
+``state_space`` is the ``Box`` it lies in.
 
-Version history: v0, spec v1.
+Arguments: ``parallel_env(setting=1, render_mode=None, **overrides)``: ``setting`` is a named setting
+(1-4, ``None`` for the plain defaults) and ``overrides`` any ``GameConfig`` field, for example
+``obs_type`` (``"pixels"``, ``"grid"``), ``frame_stack`` (4), ``n_followers`` (1), ``n_obstacles``,
+``max_steps`` (200), ``height``, ``width``, ``formation``, ``d_min``, ``d_max`` and the reward weights.
+
+``reset(options={"scenario": S})`` starts from a scenario; ``env.scenario()`` reads the present
+one. Infos per agent: ``position``, ``collided``, ``formation_kept``, ``distance`` (a follower's own
+distance to the leader; the leader's is the distance to its farthest follower), ``reached``,
+``success``, ``steps``.
+
+Version history:
+* v1: ``state()`` and ``state_space`` (the present screen or grid); the same game (spec v1).
+* v0: initial release, spec v1.
 """
 
 from __future__ import annotations
@@ -30,7 +50,7 @@ from formation.game import BatchedGame, Observer, ScreenRenderer
 
 
 class FormationParallelEnv(ParallelEnv):
-    metadata = {"name": "formation_v0", "render_modes": ["rgb_array"], "render_fps": 8,
+    metadata = {"name": "formation_v1", "render_modes": ["rgb_array"], "render_fps": 8,
                 "is_parallelizable": True}
 
     def __init__(self, config: GameConfig | None = None, render_mode: str | None = None):
@@ -47,6 +67,7 @@ class FormationParallelEnv(ParallelEnv):
         box = spaces.Box(0, self._observer.high, self._observer.shape, np.uint8)
         self.observation_spaces = {a: box for a in self.possible_agents}
         self.action_spaces = {a: spaces.Discrete(4) for a in self.possible_agents}
+        self.state_space = spaces.Box(0, self._observer.high, self._observer.frame_shape, np.uint8)
         self._reset_flag = np.ones(1, bool)
 
     def observation_space(self, agent: str) -> spaces.Space:
@@ -89,6 +110,11 @@ class FormationParallelEnv(ParallelEnv):
         if term or trunc:
             self.agents = []
         return obs, rewards, terminations, truncations, infos
+
+    def state(self) -> np.ndarray:
+        """The global state: the present frame of the observation type, unstacked (see the card)."""
+        # The observer renders on every reset and step, so its last frame is the present one.
+        return self._observer.renderer.frames[0].copy()
 
     def render(self) -> np.ndarray | None:
         if self.render_mode is None:
