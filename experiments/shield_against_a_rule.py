@@ -11,11 +11,8 @@ Prints, per horizon (0: no shield), the success rate, failures and mean steps of
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import numpy as np
-import torch
+from _common import one_thread, policy_parser
 
 from formation.evaluate import play_greedy
 from formation.learn.qnet import N_ACTIONS
@@ -38,13 +35,10 @@ def heading_rule_preferences(obs: np.ndarray, reader: FrameReader, destination_c
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("policy", type=Path, help="an exported policy folder or a run folder")
-    parser.add_argument("--horizons", type=int, nargs="+", default=[0, 1, 2, 4])
-    parser.add_argument("--episodes", type=int, default=1000)
-    parser.add_argument("--seed", type=int, default=2_000_000)
+    parser = policy_parser(__doc__)
+    parser.add_argument("--horizons", type=int, nargs="+", default=[0, 1, 2, 4], help="shield steps (0: none)")
     args = parser.parse_args()
-    torch.set_num_threads(1)
+    one_thread()
     policy = load(args.policy)
     config = policy.game
     reader = FrameReader(config)

@@ -8,9 +8,10 @@ success at each evaluation."""
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
+
+from _common import parser
 
 
 def sessions(rows: list[dict]) -> list[float]:
@@ -27,9 +28,9 @@ def sessions(rows: list[dict]) -> list[float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+")
-    args = parser.parse_args()
+    p = parser(__doc__)
+    p.add_argument("runs", nargs="+", help="run folders of `formation train`")
+    args = p.parse_args()
     for run in args.runs:
         rows = [json.loads(line) for line in (Path(run) / "metrics.jsonl").read_text().splitlines() if line.strip()]
         spans = sessions(rows)
