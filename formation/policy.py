@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from formation.config import ConfigError, GameConfig
-from formation.learn.config import VETO_FALLBACKS
+from formation.learn.config import VETO_FALLBACKS, drop_removed
 from formation.learn.qnet import N_ACTIONS, DuelingQNetwork, outputs_of, team_q_values
 from formation.shield import Shield, shielded_moves
 
@@ -60,7 +60,6 @@ class NetworkSpec:
     frame_channels: int | None = None
     cells: tuple[int, int] | None = None  # a screen read one pixel per cell of this board
     forecast: bool = False  # the obstacle forecast planes (formation.learn.qnet.ObstacleForecast)
-    row_scan: int = 0  # planes of a RowScan (formation.learn.qnet)
     answers_leader: bool = False  # 16 Q-values, one per (leader's move, own move) (formation.learn.qnet)
     safety: bool = False  # a safety head: 16 logits, one per joint move (formation.learn.qnet)
     safety_encoder: bool = False  # the safety head reads an encoder of its own (formation.learn.qnet)
@@ -68,18 +67,19 @@ class NetworkSpec:
     def build(self) -> DuelingQNetwork:
         return DuelingQNetwork(self.obs_shape, high=self.high, hidden=self.hidden, channels=self.channels,
                                window=self.window, frame_channels=self.frame_channels, cells=self.cells,
-                               forecast=self.forecast, row_scan=self.row_scan, answers_leader=self.answers_leader,
+                               forecast=self.forecast, answers_leader=self.answers_leader,
                                safety=self.safety, safety_encoder=self.safety_encoder)
 
     def to_dict(self) -> dict[str, Any]:
         return {"obs_shape": list(self.obs_shape), "high": self.high, "hidden": self.hidden,
                 "channels": list(self.channels), "window": list(self.window) if self.window is not None else None,
                 "frame_channels": self.frame_channels, "cells": list(self.cells) if self.cells is not None else None,
-                "forecast": self.forecast, "row_scan": self.row_scan, "answers_leader": self.answers_leader,
+                "forecast": self.forecast, "answers_leader": self.answers_leader,
                 "safety": self.safety, "safety_encoder": self.safety_encoder}
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> NetworkSpec:
+    def from_dict(cls, values: dict[str, Any], where: str = "networks") -> NetworkSpec:
+        values = drop_removed(where, values)
         window = values.get("window")
         frame_channels, cells = values.get("frame_channels"), values.get("cells")
         return cls(obs_shape=tuple(int(v) for v in values["obs_shape"]), high=float(values["high"]),
@@ -87,7 +87,7 @@ class NetworkSpec:
                    window=tuple(int(v) for v in window) if window is not None else None,
                    frame_channels=int(frame_channels) if frame_channels is not None else None,
                    cells=tuple(int(v) for v in cells) if cells is not None else None,
-                   forecast=bool(values.get("forecast", False)), row_scan=int(values.get("row_scan", 0)),
+                   forecast=bool(values.get("forecast", False)),
                    answers_leader=bool(values.get("answers_leader", False)),
                    safety=bool(values.get("safety", False)),
                    safety_encoder=bool(values.get("safety_encoder", False)))
@@ -365,14 +365,20 @@ def _load_export(folder: Path) -> Policy:
                           f"this version reads {FORMAT_VERSION}")
     try:
         game = GameConfig.from_dict(card["game"])
-        specs = {m: NetworkSpec.from_dict(v) for m, v in card["networks"].items()}
+    except ConfigError as err:
+        raise PolicyError(f"export: {str(card_file)!r}: game.{err}") from None
+    except (KeyError, TypeError, ValueError, AttributeError) as err:
+        raise PolicyError(f"export: {str(card_file)!r} is not a complete policy card "
+                          f"({type(err).__name__}: {err})") from None
+    try:
+        specs = {m: NetworkSpec.from_dict(v, f"networks.{m}") for m, v in card["networks"].items()}
         agents_map = card["agents"]
         agent_modules = [agents_map[a] for a in game.agent_names]
         eval_settings = {k: int(card.get("eval", {}).get(k, DEFAULT_EVAL[k])) for k in DEFAULT_EVAL}
         env_steps = card.get("env_steps")
         env_steps = int(env_steps) if env_steps is not None else None
     except ConfigError as err:
-        raise PolicyError(f"export: {str(card_file)!r}: game.{err}") from None
+        raise PolicyError(f"export: {str(card_file)!r}: {err}") from None
     except (KeyError, TypeError, ValueError, AttributeError) as err:
         raise PolicyError(f"export: {str(card_file)!r} is not a complete policy card "
                           f"({type(err).__name__}: {err})") from None

@@ -29,11 +29,11 @@ from formation.pictures import write_episodes_gif
 from formation.storage import RemoteRun, is_uri
 
 CHECKPOINT = "checkpoint"
-# what --set may change when resuming: how long to train, a fine-tuning phase (a lower lr or lr_end, and a
+# what --set may change when resuming: how long to train, a fine-tuning phase (a lower lr, and a
 # replay refilled to learning_starts records before the first update, as it starts empty), and where it
 # runs (a run started on a cluster or a GPU machine goes on on a laptop, and the other way round), and the
 # refit that follows training (formation refit)
-RESUMABLE = {"train.total_env_steps", "train.lr", "train.lr_end", "train.learning_starts"}
+RESUMABLE = {"train.total_env_steps", "train.lr", "train.learning_starts"}
 RESUMABLE_SECTIONS = ("resources", "refit")
 FAULT_COUNTERS = ("rollout_actor_restarts", "replay_restarts", "updates_skipped")
 # each module's learner results in metrics.jsonl, as learner/<module>/<name>

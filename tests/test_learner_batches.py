@@ -50,7 +50,7 @@ def test_a_follower_that_answers_the_leader_gets_pairs_with_the_leaders_move():
 
 def margin_loss(module: str, q, batch: dict, **config):
     """The learner's loss for one module batch whose Q-values are ``q`` (next-state Q-values 0), and its
-    priorities; ``config``: margin, margin_gap and the like (label_preference 0 unless given)."""
+    priorities; ``config``: margin, margin_gap and the like."""
     from types import SimpleNamespace
 
     import torch
@@ -61,7 +61,7 @@ def margin_loss(module: str, q, batch: dict, **config):
     fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(n, actions), "qf_target_next_preds": torch.zeros(n, actions)}
     learner = FormationLearner.__new__(FormationLearner)
     learner._priority, learner._stats = {}, {}
-    config = SimpleNamespace(**{"label_preference": 0.0, **config})
+    config = SimpleNamespace(**config)
     loss = learner.compute_loss_for_module(module_id=module, config=config, batch=batch, fwd_out=fwd)
     return loss, learner._priority[module]
 
@@ -70,56 +70,23 @@ def bits(*joints):
     return sum(1 << (4 * leader + follower) for leader, follower in joints)
 
 
-def test_with_any_shortest_move_each_module_accepts_its_moves_of_the_accepted_joint_actions():
+def test_with_any_shortest_move_the_leader_accepts_its_moves_of_the_accepted_joint_actions():
     sample = {"obs": np.zeros((3, 2, 2, 1), np.uint8), "next_obs": np.zeros((3, 2, 2, 1), np.uint8),
               "actions": np.array([[0, 0], [1, 2], [3, 3]]), "returns": np.zeros((3, 2), np.float32),
               "discounts": np.ones(3, np.float32), "labels": np.array([[0, 0], [0, 1], [-1, -1]]),
               "answers": np.array([[[-1] * 4, [0, 1, 2, -1]], [[-1] * 4, [1, 1, 3, 3]], [[-1] * 4, [-1] * 4]]),
               "accepted": np.array([bits((0, 0), (0, 1), (2, 1)), bits((0, 1)), 0]),
               "weights": np.ones(3, np.float32)}
-    batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}), any_shortest_move="team")
-    leader, follower = batches["leader"][ACCEPTED], batches["follower"][ACCEPTED]
-    assert leader.shape == (3, 4) and follower.shape == (3, 4, 4)
+    batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}), any_shortest_move="leader")
+    leader = batches["leader"][ACCEPTED]
     # the leader: forward and forward-right start a shortest path in the first step, forward alone in the
     # second; nothing where there is no label
     assert leader.tolist() == [[True, False, True, False], [True, False, False, False], [False] * 4]
-    # the follower, per leader move: the moves that start one with it, and the answer's own move
-    assert follower[0].tolist() == [[True, True, False, False], [False, True, False, False],
-                                    [False, True, True, False], [False] * 4]
-    assert follower[1].tolist() == [[False, True, False, False], [False, True, False, False],
-                                    [False, False, False, True], [False, False, False, True]]
-    assert not follower[2].any()
-    # "leader": the follower learns its labels alone (no ACCEPTED: its margin is towards the label)
-    for which in ("leader", "toward"):  # "toward" narrows the set in the teacher, not here
-        batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}), any_shortest_move=which)
-        assert (batches["leader"][ACCEPTED] == leader).all() and ACCEPTED not in batches["follower"]
+    assert ACCEPTED not in batches["follower"]  # the follower learns its labels alone: its margin is towards them
     assert ACCEPTED not in module_batches(sample, ["leader", "follower"], frozenset({"follower"}))["leader"]
 
 
-def test_the_margin_with_accepted_moves_compares_with_the_best_accepted_move_in_each_row():
-
-    import torch
-
-    from formation.learn.learner import WEIGHTS
-    from formation.learn.qnet import large_margin_sets
-
-    q = torch.randn(2, 16, generator=torch.Generator().manual_seed(1))
-    accepted = torch.zeros(2, 4, 4, dtype=torch.bool)
-    accepted[0, 0, [0, 1]] = True  # two moves accepted in the row of leader move 0
-    accepted[0, 2, 3] = True
-    batch = {"actions": torch.tensor([1, 9]), "n_step_returns": torch.zeros(2), "n_step_discounts": torch.zeros(2),
-             "teacher_labels": torch.tensor([[0, -1, 3, -1], [-1] * 4]), ACCEPTED: accepted, WEIGHTS: torch.ones(2)}
-    loss, priority = margin_loss("follower", q, batch, margin=2.0, margin_gap=5.0)
-    rows = q.view(2, 4, 4)
-    margin = sum(large_margin_sets(rows[0, r].unsqueeze(0), accepted[0, r].unsqueeze(0), 5.0) for r in (0, 2))
-    taken = q.gather(1, batch["actions"].unsqueeze(1)).squeeze(1)
-    td = torch.nn.functional.smooth_l1_loss(taken, torch.zeros(2))
-    torch.testing.assert_close(loss, td + 2.0 * margin.squeeze())  # the step without a label adds no margin
-    expected = taken.abs() + 2.0 * torch.stack([margin.squeeze(), torch.tensor(0.0)])
-    np.testing.assert_allclose(priority, expected.numpy(), rtol=1e-5)
-
-
-def test_a_label_preference_adds_a_weighted_margin_towards_the_label_to_the_one_towards_the_accepted_moves():
+def test_the_leaders_margin_with_accepted_moves_compares_with_the_best_accepted_move():
 
     import torch
 
@@ -130,14 +97,13 @@ def test_a_label_preference_adds_a_weighted_margin_towards_the_label_to_the_one_
     accepted = torch.tensor([[True, False, True, False], [False] * 4])
     batch = {"actions": torch.tensor([0, 0]), "n_step_returns": torch.zeros(2), "n_step_discounts": torch.zeros(2),
              "teacher_labels": torch.tensor([0, -1]), ACCEPTED: accepted, WEIGHTS: torch.ones(2)}
-    losses = {preference: margin_loss("leader", q, batch, margin=1.0, margin_gap=5.0, label_preference=preference)[0]
-              for preference in (0.0, 0.25)}
-    # towards the set: action 1 (0) + 5 against the best accepted (3): 2; towards the label (0): 3 + 5 - 1 = 7
+    loss, priority = margin_loss("leader", q, batch, margin=1.0, margin_gap=5.0)
+    # towards the set: action 1 (0) + 5 against the best accepted (3): 2; towards the label alone it would be 7
     assert large_margin_sets(q[:1], accepted[:1], 5.0).item() == 2.0
     assert large_margin(q[:1], torch.tensor([0]), 5.0).item() == 7.0
     td = torch.nn.functional.smooth_l1_loss(q[:, 0], torch.zeros(2))
-    torch.testing.assert_close(losses[0.0], td + 2.0)  # only the labelled step has a margin
-    torch.testing.assert_close(losses[0.25], td + 2.0 + 0.25 * 7.0)
+    torch.testing.assert_close(loss, td + 2.0)  # only the labelled step has a margin
+    np.testing.assert_allclose(priority, [1.0 + 2.0, 0.0])
 
 
 def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_leaders_row():
@@ -240,7 +206,7 @@ def test_threaded_module_updates_equal_rllibs_serial_update(monkeypatch):
     assert prepared == {True: 2, False: 4}
 
 
-def test_a_safety_head_adds_its_loss_and_with_safety_priority_its_wrong_verdicts_to_the_priority():
+def test_a_safety_head_adds_its_loss_but_not_its_wrong_verdicts_to_the_priority():
     import torch
 
     from formation.learn.learner import SAFE, WEIGHTS
@@ -255,23 +221,20 @@ def test_a_safety_head_adds_its_loss_and_with_safety_priority_its_wrong_verdicts
              "n_step_discounts": torch.zeros(2), "teacher_labels": torch.tensor([-1, -1]), SAFE: safe,
              WEIGHTS: torch.ones(2)}
 
-    def loss_and_priority(safety_priority):
+    def loss_and_priority():
         from formation.learn.learner import FormationLearner
 
         fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(2, 4), "qf_target_next_preds": torch.zeros(2, 4),
                SAFETY_LOGITS: logits}
         learner = FormationLearner.__new__(FormationLearner)
         learner._priority, learner._stats = {}, {}
-        config = SimpleNamespace(margin=0.0, safety_weight=1.0, safety_priority=safety_priority)
+        config = SimpleNamespace(margin=0.0, safety_weight=1.0)
         loss = learner.compute_loss_for_module(module_id="leader", config=config, batch=batch, fwd_out=fwd)
         return loss, learner._priority["leader"], learner._stats["leader"]
 
-    loss, priority, stats = loss_and_priority(0.0)
+    loss, priority, stats = loss_and_priority()
     td = torch.nn.functional.smooth_l1_loss(torch.zeros(2), torch.tensor([1.0, -0.5]))
     bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, safe.float())
     torch.testing.assert_close(loss, td + bce)
     np.testing.assert_allclose(priority, [1.0, 0.5])  # the TD errors alone
     assert stats["safety_error"] == 2 / 32
-    loss_with, priority, _ = loss_and_priority(0.25)
-    torch.testing.assert_close(loss_with, loss)  # the loss is the same; only what the replay revisits changes
-    np.testing.assert_allclose(priority, [1.0 + 0.25 * 2, 0.5])

@@ -191,7 +191,7 @@ def test_a_truncated_checkpoint_module_or_a_foreign_card_is_one_line(run_dir, ex
     assert "leader.pt" in line and "does not fit" in line
 
 
-@pytest.mark.parametrize("forecast", [False, True])  # with the forecast, a row scan too
+@pytest.mark.parametrize("forecast", [False, True])
 def test_an_export_of_networks_that_read_screens_per_cell_loads_them_alike(tmp_path, forecast):
     import torch
 
@@ -199,7 +199,7 @@ def test_an_export_of_networks_that_read_screens_per_cell_loads_them_alike(tmp_p
 
     run = RunConfig.from_dict({"game": {"setting": 3, "obs_type": "pixels", "frame_stack": 2},
                                "train": {"screen_cells": True, "channels": [4, 8, 8], "hidden": 16,
-                                         "obstacle_forecast": forecast, "row_scan": 4 if forecast else 0}})
+                                         "obstacle_forecast": forecast}})
     specs, agent_modules = run_specs(run)
     assert {spec.cells for spec in specs.values()} == {(50, 50)}
     assert {spec.build().forecast is not None for spec in specs.values()} == {forecast}
@@ -209,7 +209,7 @@ def test_an_export_of_networks_that_read_screens_per_cell_loads_them_alike(tmp_p
     card = json.loads((folder / "policy.json").read_text())
     assert [net["cells"] for net in card["networks"].values()] == [[50, 50]] * len(specs)
     assert [net["forecast"] for net in card["networks"].values()] == [forecast] * len(specs)
-    assert [net["row_scan"] for net in card["networks"].values()] == [4 if forecast else 0] * len(specs)
+    assert not any("row_scan" in net for net in card["networks"].values())  # removed in 0.2
     again = load(folder)
     env = parallel_env(**again.env_config)
     observations, _ = env.reset(seed=7)

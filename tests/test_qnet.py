@@ -188,26 +188,6 @@ def test_a_screen_read_per_cell_has_its_window_in_cells_with_the_leader_at_the_f
     assert whole.cells(obs).shape == (4, 50, 50, 6) and whole(obs).shape == (4, 4)
 
 
-def test_row_scan_carries_the_top_row_down_one_column_per_row_at_most():
-    from formation.learn.qnet import RowScan
-
-    scan = RowScan(channels=1, planes=1)
-    with torch.no_grad():  # carry: the sum of the three cells above; read: the input as it is
-        scan.carry.weight.fill_(1.0)
-        scan.carry.bias.zero_()
-        scan.read.weight.fill_(1.0)
-        scan.read.bias.zero_()
-    x = torch.zeros(1, 1, 5, 9)
-    x[0, 0, 0, 4] = 1.0  # one cell of the top row
-    out = scan(x)
-    assert out.shape == (1, 2, 5, 9) and torch.equal(out[:, :1], x)  # the input passes through
-    reached = out[0, 1] > 0
-    for row in range(5):  # a cone: row i holds the columns within i of column 4
-        assert reached[row].nonzero().flatten().tolist() == list(range(max(0, 4 - row), min(9, 4 + row + 1)))
-    x[0, 0, 2, :] = -10.0  # a row that blocks everything: nothing below it
-    assert not (scan(x)[0, 1, 2:] > 0).any()
-
-
 def test_a_follower_that_answers_the_leader_reads_the_row_of_the_leaders_move():
     from formation.learn.qnet import team_q_values
 

@@ -1,10 +1,9 @@
 """A safety head learnt beside the Q-values (``train.safety_horizon``): the planner labels every visited
-state with the joint moves that start safe steps, the labels travel through the replay (and its mirror)
+state with the joint moves that start safe steps, the labels travel through the replay
 to the learner, which fits the head, and greedy play keeps to the joint moves the head judges safe."""
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import json
 
@@ -14,10 +13,9 @@ import torch
 
 from formation.config import ConfigError, GameConfig
 from formation.game import BatchedGame, Observer
-from formation.game.mirror import mirror_steps
 from formation.learn.config import RunConfig
 from formation.learn.learner import SAFE, module_batches
-from formation.learn.qnet import DuelingQNetwork, RowScan, outputs_of
+from formation.learn.qnet import DuelingQNetwork, outputs_of
 from formation.learn.replay import FrameReplay
 from formation.learn.rollout import GameRollout, concatenate
 from formation.planner import (
@@ -34,15 +32,9 @@ JOINTS = list(itertools.product(range(4), repeat=2))
 
 
 @pytest.mark.parametrize("key,value,message", [
-    ("train.safety_horizon", -1, "train.safety_horizon: -1 is not allowed; allowed: an integer >= 0 or path"),
-    ("train.safety_horizon", "far", "train.safety_horizon: 'far' is not allowed; allowed: an integer >= 0 or path"),
-    ("train.safety_slack", 1, "train.safety_slack: 1 needs train.safety_horizon: path; allowed: 0"),
+    ("train.safety_horizon", -1, "train.safety_horizon: -1 is not allowed; allowed: an integer >= 0"),
+    ("train.safety_horizon", "path", "train.safety_horizon: 'path' is not allowed; allowed: an integer >= 0"),
     ("train.safety_weight", -0.5, "train.safety_weight: -0.5 is not allowed; allowed: a number in [0.0, inf]"),
-    ("train.safety_priority", -1, "train.safety_priority: -1 is not allowed; allowed: a number in [0.0, inf]"),
-    ("train.safety_priority", 1.0, "train.safety_priority: 1.0 needs train.safety_horizon other than 0 and "
-                                   "train.prioritized: true; allowed: 0"),
-    ("train.rollout_veto", True, "train.rollout_veto: true needs train.safety_horizon other than 0; allowed: false"),
-    ("train.rollout_veto", "yes", "train.rollout_veto: 'yes' is not allowed; allowed: true, false"),
     ("train.safety_encoder", True, "train.safety_encoder: true needs train.safety_horizon other than 0; "
                                    "allowed: false"),
     ("train.safety_encoder", "own", "train.safety_encoder: 'own' is not allowed; allowed: true, false"),
@@ -57,12 +49,6 @@ def test_a_safety_head_needs_one_follower():
     with pytest.raises(ConfigError, match=r"train.safety_horizon: 2 needs game.n_followers: 1 \(not 2\)"):
         RunConfig.load(SMOKE, {"train.safety_horizon": 2, "game.n_followers": 2, "game.width": 12,
                                "train.follower_answers_leader": False})
-
-
-def test_a_bad_slack_of_the_path_labels_is_one_line():
-    with pytest.raises(ConfigError) as err:
-        RunConfig.load(SMOKE, {"train.safety_horizon": "path", "train.safety_slack": -1})
-    assert str(err.value) == "train.safety_slack: -1 is not allowed; allowed: an integer >= 0"
 
 
 def viable_by_playing(config: GameConfig, scenario, joint: tuple[int, int], deadline: int) -> bool:
@@ -103,19 +89,6 @@ def test_path_labels_are_the_moves_that_start_a_successful_path_within_the_slack
     assert seen[0] and seen[1] and differ
 
 
-@pytest.mark.parametrize("slack", [0, 1])
-def test_the_rollout_actor_labels_states_with_the_path_labels(rollout_actor, slack):
-    actor = rollout_actor({"train.safety_horizon": "path", "train.safety_slack": slack})
-    game = actor.rollout.game
-    rng = np.random.default_rng(slack)
-    for _ in range(3):
-        scenarios = [game.scenario(i) for i in range(game.batch_size)]
-        limits = [lower_bound(s, game.config) + actor.run.train.planner_slack for s in scenarios]
-        expected = viable_first_moves_many(scenarios, config=game.config, slack=slack, max_steps=limits)
-        assert (actor._safe() == expected).all() and (expected != 0).any()
-        actor.rollout.step(rng.choice([0, 0, 1, 2, 3], size=(game.batch_size, 2)))
-
-
 def test_the_head_gives_16_logits_beside_unchanged_q_values():
     torch.manual_seed(0)
     plain = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), answers_leader=True)
@@ -129,11 +102,10 @@ def test_the_head_gives_16_logits_beside_unchanged_q_values():
 
 def test_a_head_with_an_encoder_of_its_own_leaves_the_q_values_and_their_layers_alone():
     torch.manual_seed(0)
-    shared = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), row_scan=2, safety=True)
+    shared = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), safety=True)
     torch.manual_seed(0)
-    own = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), row_scan=2, safety=True,
-                          safety_encoder=True)
-    assert shared.safety_encoder is None and isinstance(own.safety_encoder[0], RowScan)
+    own = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), safety=True, safety_encoder=True)
+    assert shared.safety_encoder is None and own.safety_encoder is not None
     obs = torch.randint(0, 2, (5, 9, 9, 8), dtype=torch.uint8)
     assert torch.equal(shared(obs), own(obs))  # its encoder adds weights after the Q-values' own
     x = own.prepare(obs)
@@ -147,9 +119,9 @@ def test_a_head_with_an_encoder_of_its_own_leaves_the_q_values_and_their_layers_
     for net in (shared, own):
         net.zero_grad()
         net.safety_logits(x).square().mean().backward()
-    assert shared.encoder[0].weight.grad.abs().sum() > 0 and shared.row_scan.read.weight.grad.abs().sum() > 0
-    assert own.encoder[0].weight.grad is None and own.row_scan.read.weight.grad is None
-    assert own.safety_encoder[1][0].weight.grad.abs().sum() > 0
+    assert shared.encoder[0].weight.grad.abs().sum() > 0
+    assert own.encoder[0].weight.grad is None
+    assert own.safety_encoder[0][0].weight.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="safety_encoder: needs a safety head"):
         DuelingQNetwork((9, 9, 8), high=1.0, safety_encoder=True)
 
@@ -189,7 +161,7 @@ def visited_states(config: GameConfig, games: int = 8, steps: int = 6, seed: int
     return concatenate(chunks), states
 
 
-def test_safe_moves_travel_through_the_replay_to_the_module_batches_and_the_mirror():
+def test_safe_moves_travel_through_the_replay_to_the_module_batches():
     config = GameConfig.from_setting(2, obs_type="grid", frame_stack=2, height=9, width=9, n_obstacles=2)
     chunk, states = visited_states(config)
     recorded = np.concatenate([safe for _, safe in states])
@@ -205,10 +177,6 @@ def test_safe_moves_travel_through_the_replay_to_the_module_batches_and_the_mirr
         assert bits.shape == (32, 16)
         assert (np.packbits(bits[:, ::-1], axis=1, bitorder="big").view(">u2")[:, 0] == sample["safe"]).all()
     assert SAFE not in module_batches(sample, ["leader", "follower"], frozenset({"follower"}))["leader"]
-    # in the mirror, a joint move's left and right swap for both agents
-    mirrored = mirror_steps(sample, np.ones(32, bool))["safe"]
-    twice = mirror_steps({**sample, "safe": mirrored}, np.ones(32, bool))["safe"]
-    assert (twice == sample["safe"]).all() and (mirrored != sample["safe"]).any()
 
 
 def test_greedy_play_keeps_to_the_moves_the_head_judges_safe(tmp_path):
@@ -238,34 +206,6 @@ def test_greedy_play_keeps_to_the_moves_the_head_judges_safe(tmp_path):
     reloaded = load(export(policy, tmp_path / "export"))
     assert json.loads((tmp_path / "export" / "policy.json").read_text())["networks"]["leader"]["safety"] is True
     assert (reloaded.act_batch(obs) == policy.act_batch(obs)).all()
-
-
-def test_with_rollout_veto_the_rollout_actors_play_within_the_moves_the_head_judges_safe(rollout_actor):
-    actor = rollout_actor({"train.follower_answers_leader": True, "train.safety_horizon": 2,
-                           "train.rollout_veto": True, "train.epsilon_start": 0.5, "train.epsilon_end": 0.5})
-    obs = actor.rollout.observations
-    greedy, actions = actor._actions(obs)
-    with torch.no_grad():
-        leader_q = actor.module["leader"].q_network(torch.from_numpy(obs)).numpy()
-        x = actor.module["follower"].q_network.prepare(torch.from_numpy(obs))
-        follower_q = actor.module["follower"].q_network.q_values(x).numpy().reshape(-1, 4, 4)
-        heads = [torch.sigmoid(actor.module[m].q_network.safety_logits(x)).numpy() for m in ("leader", "follower")]
-    safe = np.mean(heads, axis=0).reshape(-1, 4, 4) > 0.5
-    rows = np.arange(len(obs))
-    unvetoed = leader_q.argmax(1)
-    assert (~safe[rows, unvetoed, follower_q[rows, unvetoed].argmax(1)]).any()  # the veto had work to do
-    assert safe[rows, greedy[:, 0], greedy[:, 1]][safe.any(axis=(1, 2))].all()  # greedy play keeps to safe moves
-    # the leader's greedy move is its best with a safe answer, the follower's its best safe answer
-    best_answerable = np.where(safe.any(2), leader_q, -np.inf).argmax(1)
-    assert (greedy[:, 0] == best_answerable).all()
-    assert (actions[:, 0] != greedy[:, 0]).any()  # the leader explored somewhere (epsilon 0.5)
-    for i, (lead, follow) in enumerate(actions):  # the follower answers the move the leader plays, safely
-        allowed = safe[i, lead] if safe[i, lead].any() else np.ones(4, bool)
-        assert follow == np.where(allowed, follower_q[i, lead], -np.inf).argmax()
-    # without the veto the same networks play the Q-values alone
-    actor.run = dataclasses.replace(actor.run, train=dataclasses.replace(actor.run.train, rollout_veto=False))
-    plain_greedy, _ = actor._actions(obs)
-    assert (plain_greedy[:, 0] == unvetoed).all()
 
 
 def test_without_heads_nothing_is_vetoed_and_greedy_within_all_moves_is_plain_greedy():

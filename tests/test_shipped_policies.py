@@ -28,3 +28,20 @@ def test_a_shipped_policy_plays_its_setting_from_pixels_as_reported(setting):
     # within about three standard errors of the reported rate
     p = reported["success"]
     assert summary["success"] >= max(0.3, p - 3 * (p * (1 - p) / EPISODES) ** 0.5 - 0.01), (summary, p)
+
+
+def test_a_card_that_names_a_removed_option_loads_at_its_neutral_value_and_is_refused_at_another(tmp_path):
+    from formation.policy import PolicyError
+
+    folder = tmp_path / "setting1"
+    folder.mkdir()
+    for f in (REPO / "policies" / "setting1").iterdir():
+        (folder / f.name).write_bytes(f.read_bytes())
+    card = json.loads((folder / "policy.json").read_text())
+    assert {net["row_scan"] for net in card["networks"].values()} == {0}  # as 0.1 wrote every card
+    assert load(folder).specs == load(REPO / "policies" / "setting1").specs
+    card["networks"]["follower"]["row_scan"] = 8
+    (folder / "policy.json").write_text(json.dumps(card))
+    with pytest.raises(PolicyError, match=r"policy\.json': networks\.follower\.row_scan: removed in 0\.2 \(.*"
+                                          r"allowed: 0 / absent$"):
+        load(folder)

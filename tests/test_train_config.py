@@ -4,7 +4,7 @@ import pytest
 import yaml
 
 from formation.config import ConfigError
-from formation.learn.config import RunConfig, TrainSettings
+from formation.learn.config import RunConfig
 
 
 def one_line_error(values=None, path=None, overrides=None) -> str:
@@ -37,9 +37,9 @@ def test_numbers_in_exponent_notation_are_numbers_in_a_file_and_in_overrides(tmp
 
     path = tmp_path / "c.yaml"
     path.write_text("train:\n  lr: 3e-4\n  margin_gap: 5E+0\n")
-    config = RunConfig.load(path, parse_overrides(["train.lr_end=1e-5", "train.label_order=lockstep"]))
-    assert (config.train.lr, config.train.margin_gap, config.train.lr_end) == (3e-4, 5.0, 1e-5)
-    assert config.train.label_order == "lockstep"
+    config = RunConfig.load(path, parse_overrides(["train.safety_weight=1e-1", "train.potential=none"]))
+    assert (config.train.lr, config.train.margin_gap, config.train.safety_weight) == (3e-4, 5.0, 0.1)
+    assert config.train.potential == "none"
     # still a one-line error where a whole number is needed
     assert one_line_error(path=path, overrides=parse_overrides(["train.total_env_steps=1e5"])).startswith(
         "train.total_env_steps")
@@ -55,17 +55,13 @@ def test_numbers_in_exponent_notation_are_numbers_in_a_file_and_in_overrides(tmp
     ({"game": {"setting": 9}}, "game.setting"),
     ({"game": {"d_min": 4}}, "game.d_min"),
     ({"game": {"obs_type": "rgb"}}, "game.obs_type"),
-    ({"train": {"label_order": "random"}}, "train.label_order"),
     ({"train": {"robust_first_step": "yes"}}, "train.robust_first_step"),
     ({"train": {"screen_cells": "yes"}}, "train.screen_cells"),
     ({"train": {"obstacle_forecast": "yes"}}, "train.obstacle_forecast"),
     ({"train": {"obstacle_forecast": True, "screen_cells": False}}, "train.obstacle_forecast"),
     ({"game": {"frame_stack": 1}, "train": {"obstacle_forecast": True}}, "train.obstacle_forecast"),
-    ({"train": {"row_scan": -1}}, "train.row_scan"),
     ({"game": {"obstacle_speeds": [1, 3]}}, "train.obstacle_forecast"),
-    ({"train": {"follower_labels": "leader"}}, "train.follower_labels"),
     ({"train": {"follower_answers_leader": "yes"}}, "train.follower_answers_leader"),
-    ({"train": {"follower_answers_leader": True, "follower_labels": "response"}}, "train.follower_labels"),
     ({"train": {"answer_every_leader_move": "yes"}}, "train.answer_every_leader_move"),
     ({"train": {"answer_every_leader_move": True, "follower_answers_leader": False}},
      "train.answer_every_leader_move"),
@@ -73,15 +69,12 @@ def test_numbers_in_exponent_notation_are_numbers_in_a_file_and_in_overrides(tmp
     ({"train": {"any_shortest_move": True}}, "train.any_shortest_move"),
     ({"train": {"any_shortest_move": "follower"}}, "train.any_shortest_move"),
     ({"train": {"any_shortest_move": "leader", "follower_answers_leader": False}}, "train.any_shortest_move"),
-    ({"train": {"any_shortest_move": "team", "dagger": False}}, "train.any_shortest_move"),
-    ({"train": {"any_shortest_move": "toward", "follower_answers_leader": False}}, "train.any_shortest_move"),
-    ({"train": {"label_preference": 0.1}}, "train.label_preference"),
-    ({"train": {"label_preference": -1, "any_shortest_move": "leader"}}, "train.label_preference"),
+    ({"train": {"any_shortest_move": "toward"}}, "train.any_shortest_move"),  # a value that lost
+    ({"train": {"any_shortest_move": "team"}}, "train.any_shortest_move"),
+    ({"train": {"potential": "planner"}}, "train.potential"),
+    ({"train": {"safety_horizon": "path"}}, "train.safety_horizon"),
     ({"game": {"n_followers": 2}, "train": {"any_shortest_move": "leader"}}, "train.any_shortest_move"),
-    ({"train": {"row_scan": 8, "screen_cells": False, "obstacle_forecast": False}}, "train.row_scan"),
     ({"train": {"margin_gap": -1}}, "train.margin_gap"),
-    ({"train": {"lr_end": 0}}, "train.lr_end"),
-    ({"train": {"lr_end": "slow"}}, "train.lr_end"),
     ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),
     ({"train": {"leader_window": [1, 2, -3]}}, "train.leader_window"),
     ({"train": {"path": "stock"}}, "train.path"),  # the default recipe is not RLlib's stock DQN
@@ -91,15 +84,42 @@ def test_bad_values_name_the_key(values, names):
     assert one_line_error(values).startswith(names)
 
 
-def test_lr_end_holds_lr_for_half_the_steps_then_falls_linearly():
-    from ray.rllib.utils.schedules.scheduler import Scheduler
+# every option that was removed, at a value that did something: (key, value)
+REMOVED_VALUES = [("lr_end", 1e-5), ("failure_restarts", 0.25), ("mirror", True), ("row_scan", 8),
+                  ("label_order", "toward"), ("label_preference", 0.1), ("safety_priority", 1.0),
+                  ("rollout_veto", True), ("safety_slack", 1), ("tolerant_formation", True),
+                  ("follower_labels", "response")]
 
-    from formation.learn.config import lr_schedule
 
-    assert lr_schedule(TrainSettings(lr=3e-4), 1000) == 3e-4
-    schedule = Scheduler(lr_schedule(TrainSettings(lr=1e-3, lr_end=1e-4), 1000), framework="torch", device="cpu")
-    for step, lr in ((0, 1e-3), (500, 1e-3), (750, 5.5e-4), (1000, 1e-4), (5000, 1e-4)):
-        assert schedule.update(timestep=step) == pytest.approx(lr)
+@pytest.mark.parametrize("key, value", REMOVED_VALUES)
+def test_a_removed_option_that_would_do_something_is_refused_in_one_line_naming_it(tmp_path, key, value):
+    from formation.learn.config import REMOVED
+
+    assert {k for k, _ in REMOVED_VALUES} == set(REMOVED)
+    message = one_line_error({"train": {key: value}})
+    assert message.startswith(f"train.{key}: removed in 0.2 (") and message.endswith("/ absent")
+    # a saved run's config.yaml (formation train --resume, formation.policy.load) alike
+    saved = RunConfig().to_dict()
+    saved["train"][key] = value
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump(saved))
+    with pytest.raises(ConfigError, match=rf"^train\.{key}: removed in 0\.2"):
+        RunConfig.load_saved(tmp_path / "config.yaml")
+
+
+def test_a_saved_run_that_names_removed_options_at_their_neutral_values_loads_without_them(tmp_path):
+    from formation.learn.config import REMOVED
+
+    saved = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "grid"}}).to_dict()
+    # what 0.1 wrote into every run folder's config.yaml
+    saved["train"].update(lr_end=None, failure_restarts=0.0, mirror=False, row_scan=0, label_order="lockstep",
+                          label_preference=0.0, safety_priority=0.0, rollout_veto=False, safety_slack=0,
+                          tolerant_formation=False, follower_labels="teacher")
+    assert set(REMOVED) <= set(saved["train"])
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(saved))
+    config = RunConfig.load_saved(path)
+    assert config == RunConfig.from_dict({"game": {"setting": 1, "obs_type": "grid"}})
+    assert not set(REMOVED) & set(config.to_dict()["train"])
 
 
 def test_missing_file_and_bad_yaml(tmp_path):
@@ -141,14 +161,12 @@ def test_a_saved_run_from_before_a_key_existed_keeps_what_it_trained_with(tmp_pa
     del saved["train"]["leader_window"]  # written before the leader window existed: whole-screen networks
     del saved["train"]["screen_cells"]  # and before screens were read per cell: 4x4-pixel patches
     del saved["train"]["obstacle_forecast"]
-    del saved["train"]["row_scan"]
     del saved["train"]["follower_answers_leader"]
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(saved))
     assert RunConfig.load_saved(path).train.leader_window is None
     assert RunConfig.load_saved(path).train.screen_cells is False
     assert RunConfig.load_saved(path).train.obstacle_forecast is False
-    assert RunConfig.load_saved(path).train.row_scan == 0
     assert RunConfig.load_saved(path).train.follower_answers_leader is False
     assert RunConfig.load(path).train.leader_window == (12, 3, 10)  # a plain config takes today's default
     assert RunConfig.load(path).train.screen_cells is True

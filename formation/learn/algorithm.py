@@ -34,7 +34,7 @@ from ray.rllib.utils.metrics import (
 from formation.config import RunFailed
 from formation.evaluate import play_greedy
 from formation.game.render import GRID_PLANES
-from formation.learn.config import RunConfig, lr_schedule
+from formation.learn.config import RunConfig
 from formation.learn.learner import FormationLearner
 from formation.learn.module import DuelingQModule
 from formation.learn.replay_actor import ReplayActor
@@ -83,16 +83,8 @@ class FormationDQNConfig(DQNConfig):
         return self.run.train.margin_gap
 
     @property
-    def label_preference(self) -> float:
-        return self.run.train.label_preference
-
-    @property
     def safety_weight(self) -> float:
         return self.run.train.safety_weight
-
-    @property
-    def safety_priority(self) -> float:
-        return self.run.train.safety_priority
 
     @property
     def prioritized(self) -> bool:
@@ -118,13 +110,11 @@ def leader_window_config(run: RunConfig, obs_shape: tuple[int, ...]) -> dict[str
     """``train.leader_window`` (in cells) as the module's ``window`` (in entries of what the network
     reads: cells of a grid or of a screen read per cell, pixels of a screen) and ``frame_channels``;
     ``train.screen_cells`` as ``cells``, the board's height and width; ``train.obstacle_forecast`` as
-    ``forecast``; ``train.row_scan`` as ``row_scan``."""
+    ``forecast``."""
     per_cell = run.game.obs_type == "pixels" and run.train.screen_cells
     cells = {"cells": [run.game.height, run.game.width]} if per_cell else {}
     if run.train.obstacle_forecast:
         cells["forecast"] = True
-    if run.train.row_scan:
-        cells["row_scan"] = run.train.row_scan
     window = run.train.leader_window
     if window is None:
         return cells
@@ -165,7 +155,7 @@ def build_stock_config(run: RunConfig) -> StockFormationDQNConfig:
         .learners(num_learners=0 if res.num_gpus_per_learner == 0 else 1, num_gpus_per_learner=res.num_gpus_per_learner)
         .multi_agent(policies=set(module_specs(run)), policy_mapping_fn=mapping)
         .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs=module_specs(run)))
-        .training(lr=lr_schedule(t, t.total_env_steps), gamma=t.gamma, train_batch_size=t.batch_size,
+        .training(lr=t.lr, gamma=t.gamma, train_batch_size=t.batch_size,
                   n_step=t.n_step, double_q=True, dueling=True,
                   target_network_update_freq=int(t.target_update_every / t.replay_ratio), tau=1.0,
                   grad_clip=t.grad_clip, grad_clip_by="global_norm",
@@ -205,7 +195,7 @@ def build_formation_config(run: RunConfig) -> FormationDQNConfig:
                   num_cpus_per_learner=1 if res.num_gpus_per_learner == 0 else 0)
         .multi_agent(policies=set(modules), policy_mapping_fn=mapping)
         .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs=specs))
-        .training(lr=lr_schedule(t, t.total_env_steps * t.replay_ratio), gamma=t.gamma, train_batch_size=t.batch_size,
+        .training(lr=t.lr, gamma=t.gamma, train_batch_size=t.batch_size,
                   target_network_update_freq=t.target_update_every, tau=1.0, grad_clip=t.grad_clip,
                   grad_clip_by="global_norm")
         .reporting(min_sample_timesteps_per_iteration=0, min_time_s_per_iteration=1.0)
@@ -315,10 +305,9 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
             remote_worker_ids=runner_ids, local_env_runner=False)
         agents = module_of_agent(self.run)
         answering = [m for m in set(agents) if answers_leader(self.run, m)]
-        mirror, seed, any_shortest = self.run.train.mirror, self.run.train.seed, self.run.train.any_shortest_move
-        safety = self.run.train.safety_head
+        any_shortest, safety = self.run.train.any_shortest_move, self.run.train.safety_head
         self.learner_group.foreach_learner(
-            lambda learner: learner.set_replays(replays, agents, answering, mirror, seed, any_shortest, safety))
+            lambda learner: learner.set_replays(replays, agents, answering, any_shortest, safety))
 
     def restore_env_runners(self, env_runner_group):
         restored = super().restore_env_runners(env_runner_group)

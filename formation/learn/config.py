@@ -23,16 +23,42 @@ from typing import Any
 import yaml
 
 from formation.config import ConfigError, GameConfig
-from formation.game.mirror import mirror_symmetric
 from formation.learn.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
-SAFETY_PATH = "path"  # train.safety_horizon: the head learns which joint moves leave a successful path
-ANY_SHORTEST_MOVE = ("none", "leader", "toward", "team")  # train.any_shortest_move: whose margin accepts more
+ANY_SHORTEST_MOVE = ("none", "leader")  # train.any_shortest_move: whose margin accepts more
 EXPLORATIONS = ("independent", "joint")
-LABEL_ORDERS = ("planner", "lockstep", "toward", "safe", "widest")
-FOLLOWER_LABELS = ("teacher", "response")
 FORECAST_SPEEDS = (1, 2)  # the obstacle speeds formation.learn.qnet.ObstacleForecast reads
+
+# options tried and not kept (docs/TRAINING.md has their numbers; git history their code): a saved run's
+# config.yaml or a policy card may still name one at its neutral value, which is dropped; any other value is refused
+REMOVED: dict[str, tuple[tuple[Any, ...], str]] = {
+    "lr_end": ((None,), "a falling learning rate did not help"),
+    "failure_restarts": ((0, 0.0), "restarts from failures did not help"),
+    "mirror": ((False,), "mirrored batches did not help"),
+    "row_scan": ((0,), "the row scan did not help"),
+    "label_order": (("lockstep",), "the other label orders did not help; labels follow the lockstep order"),
+    "label_preference": ((0, 0.0), "the label preference did not help"),
+    "safety_priority": ((0, 0.0), "safety priorities did not help"),
+    "rollout_veto": ((False,), "the vetoed rollouts did not help"),
+    "safety_slack": ((0,), "path safety labels did not help"),
+    "tolerant_formation": ((False,), "tolerant labels did not help"),
+    "follower_labels": (("teacher",), "the responding followers' labels did not help"),
+}
+
+
+def drop_removed(section: str, values: dict[str, Any]) -> dict[str, Any]:
+    """``values`` (one section of a config, or a card's network) without the removed options (``REMOVED``) that
+    stand at their neutral value; one that does not is refused in one line naming it."""
+    out = dict(values)
+    for key in [k for k in out if k in REMOVED]:
+        neutral, why = REMOVED[key]
+        value = out.pop(key)
+        if not any(value == v and type(value) is type(v) for v in neutral):
+            allowed = " / ".join("null" if v is None else str(v).lower() for v in neutral)
+            raise ConfigError(f"{section}.{key}: removed in 0.2 ({why}; docs/lab/), so {value!r} is refused; "
+                              f"allowed: {allowed} / absent")
+    return out
 
 
 @dataclass(frozen=True)
@@ -42,9 +68,6 @@ class TrainSettings:
     gamma: float = 0.97
     n_step: int = 3
     lr: float = 1e-3
-    # null: the learning rate stays at lr; a number: it stays at lr for the first half of the run's learner
-    # updates (total_env_steps x replay_ratio), then falls linearly to lr_end at the last one
-    lr_end: float | None = None
     batch_size: int = 64
     replay_capacity: int = 100_000
     replay_ratio: float = 0.25  # learner updates per env step, whatever the number of actors
@@ -57,8 +80,8 @@ class TrainSettings:
     # explores together, every follower copying the leader's random move (keeps the formation)
     exploration: str = "joint"
     shaping: float = 1.0  # weight of potential-based shaping; 0 = the paper's reward alone
-    potential: str = "distance"  # none | distance | planner (see formation.learn.shaping)
-    planner_slack: int = 6  # planner potential and teacher: paths longer than the lower bound + slack count as lost
+    potential: str = "distance"  # none | distance (see formation.learn.shaping)
+    planner_slack: int = 6  # the teacher: paths longer than the lower bound + slack count as lost
     steps_per_sample: int = 8  # steps of all of an actor's games per push to the replay
     demonstrations: float = 0.5  # fraction of games played by the clairvoyant planner (the teacher)
     # exploring starts: the fraction of training episodes that start with the team, in its start formation,
@@ -66,31 +89,12 @@ class TrainSettings:
     # so that it also learns states its own play seldom reaches (the top row beside the destination).
     # Evaluation always starts from the spec's places
     exploring_starts: float = 0.0
-    # failure restarts: the fraction of training episodes that start from the state a few steps before the end of
-    # a recent training episode that ended in a collision or a formation break (formation.learn.rollout), so
-    # that the learner sees the states it fails in again and again, with the teacher's labels (no gain on
-    # settings 2 and 4: docs/TRAINING.md). Evaluation always starts from the spec's places
-    failure_restarts: float = 0.0
     margin: float = 5.0  # DQfD large-margin loss weight towards the teacher's actions (labels)
     margin_gap: float = 5.0  # DQfD's l(a_E, a): how far above every other action the teacher's Q must stand
     dagger: bool = True  # label every visited state with the teacher's joint action (DAgger)
-    # label_order and robust_first_step shape the labels (formation.learn.teacher); they do nothing when
-    # dagger is false. Which action labels a state: the planner's own first action ("planner"); of those
-    # that start a shortest path (often ~8), the first in a fixed order ("lockstep": everyone the same
-    # move first, then forward, sideways towards the destination, away, stay; "toward": the same with
-    # sideways towards the destination's column before forward); or the first in the lockstep
-    # order, moves bringing the leader closer first, that leaves any path within the slack ("safe")
-    label_order: str = "lockstep"
     # DAgger labels of an episode's first step (no motion on screen yet): keep a path for the most obstacle
-    # velocities instead of the clairvoyant planner's choice
+    # velocities instead of the clairvoyant planner's choice (formation.learn.teacher)
     robust_first_step: bool = True
-    # labels prefer joint actions after which the formation would survive any one agent landing a cell off
-    # (up, down, left or right; formation.learn.teacher)
-    tolerant_formation: bool = False
-    # the followers' labels: "teacher", their part of the teacher's joint action; "response", the moves that
-    # best answer the leader network's own greedy move (formation.learn.teacher.Teacher.respond), so that a
-    # follower learns to keep formation with the leader it has rather than with the teacher
-    follower_labels: str = "teacher"
     # the followers' networks answer the leader: one Q-value per (leader's move, own move), and a follower
     # makes its move in the row of the move the leader makes (formation.learn.qnet.team_q_values); DAgger
     # labels it with the teacher's answer to that move (formation.learn.teacher.Teacher.answer)
@@ -101,15 +105,9 @@ class TrainSettings:
     answer_every_leader_move: bool = False
     # DAgger's margin accepts every move that starts a shortest path, not only the label's
     # (formation.learn.qnet.large_margin_sets): "leader", the leader's margin is towards the best of its moves
-    # that start one with some follower move, and the follower still learns the teacher's answers; "team", the
-    # answering follower's too, in each row towards the best of its moves that start one with that leader move;
-    # "toward", as "leader" but only the leader's moves that keep or close its distance to the destination's
-    # column, and the label's; "none", the label's move alone. Needs dagger, follower_answers_leader and one
-    # follower
+    # that start one with some follower move, and the follower still learns the teacher's answers; "none", the
+    # label's move alone. Needs dagger, follower_answers_leader and one follower
     any_shortest_move: str = "none"
-    # with any_shortest_move, the weight of a second DQfD margin towards the label itself, beside the one towards
-    # the accepted moves: the label breaks the ties among them (0: none)
-    label_preference: float = 0.0
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True
     hidden: int = 256
@@ -126,30 +124,13 @@ class TrainSettings:
     # last two frames and the game's rule of motion (formation.learn.qnet.ObstacleForecast; no weights).
     # Needs grid observations or screen_cells, and frame_stack >= 2
     obstacle_forecast: bool = True
-    # planes of a recurrent convolution down the rows of what the Q-networks read, from the destination's side
-    # (formation.learn.qnet.RowScan); 0: none. Needs grid observations or screen_cells
-    row_scan: int = 0
-    # the learner sees a random half of every batch in a mirror (columns reversed, left and right moves
-    # swapped; formation.game.mirror): twice the states from the same play. Needs a board that is its own
-    # mirror image (an odd width, one follower: settings 1-2)
-    mirror: bool = False
     # each Q-network also learns, beside its Q-values, which of the team's 16 joint moves start this many steps
     # free of collisions and formation breaks (the planner on the game's true state labels every visited
     # state, as the teacher labels it; formation.planner.surviving_first_moves_many), with a loss weighted by
     # safety_weight; greedy play then keeps to the joint moves that head judges safe (formation.policy). 0: none.
-    # "path": the joint moves that start a successful path at most safety_slack steps longer than a shortest one,
-    # within the teacher's deadline (the lower bound + planner_slack; formation.planner.viable_first_moves_many).
     # Needs one follower
-    safety_horizon: int | str = 0
-    safety_slack: int = 0
+    safety_horizon: int = 0
     safety_weight: float = 1.0
-    # prioritized replay also revisits the states where the safety head is wrong: each wrong verdict of the
-    # 16 adds this much to the state's priority (beside its TD error and margin loss). Needs a safety head
-    safety_priority: float = 0.0
-    # the rollout actors' own games play as the trained team does: greedy (and exploring) moves within the joint
-    # moves the safety head judges safe, so DAgger labels the states the vetoed team visits, not those of the
-    # Q-values alone. Needs a safety head
-    rollout_veto: bool = False
     # the safety head reads an encoder of its own (a copy of the Q-values' layers with weights, trained by the
     # safety loss alone) instead of the Q-values' features, so its errors need not fall in the states where the
     # Q-values err. Needs a safety head
@@ -168,19 +149,15 @@ class TrainSettings:
     def __post_init__(self) -> None:
         _number(self, "gamma", 0.0, 1.0)
         _number(self, "lr", 0.0, 1.0, low_open=True)
-        _number(self, "lr_end", 0.0, 1.0, low_open=True, nullable=True)
         _number(self, "replay_ratio", 0.0, 64.0, low_open=True)
         _number(self, "epsilon_start", 0.0, 1.0)
         _number(self, "epsilon_end", 0.0, 1.0)
         _number(self, "shaping", 0.0, math.inf)
         _number(self, "demonstrations", 0.0, 1.0)
         _number(self, "exploring_starts", 0.0, 1.0)
-        _number(self, "failure_restarts", 0.0, 1.0)
         _number(self, "margin", 0.0, math.inf)
         _number(self, "margin_gap", 0.0, math.inf)
-        _number(self, "label_preference", 0.0, math.inf)
         _number(self, "safety_weight", 0.0, math.inf)
-        _number(self, "safety_priority", 0.0, math.inf)
         _number(self, "grad_clip", 0.0, math.inf, low_open=True)
         if self.potential not in POTENTIALS:
             raise ConfigError(f"train.potential: {self.potential!r} is not allowed; allowed: {', '.join(POTENTIALS)}")
@@ -189,39 +166,17 @@ class TrainSettings:
                      "total_env_steps", "weights_every_updates", "epsilon_env_steps"):
             _integer(self, name, 1)
         _integer(self, "learning_starts", 0)
-        _integer(self, "row_scan", 0)
-        if self.safety_horizon != SAFETY_PATH:
-            _integer(self, "safety_horizon", 0, also=SAFETY_PATH)
-        _integer(self, "safety_slack", 0)
-        if self.safety_slack and self.safety_horizon != SAFETY_PATH:
-            raise ConfigError(f"train.safety_slack: {self.safety_slack} needs train.safety_horizon: {SAFETY_PATH}; "
-                              "allowed: 0")
-        if self.safety_priority and not (self.safety_horizon and self.prioritized):
-            raise ConfigError(f"train.safety_priority: {self.safety_priority} needs train.safety_horizon other than 0 "
-                              "and train.prioritized: true; allowed: 0")
-        if self.rollout_veto is True and not self.safety_horizon:
-            raise ConfigError("train.rollout_veto: true needs train.safety_horizon other than 0; allowed: false")
+        _integer(self, "safety_horizon", 0)
         if self.safety_encoder is True and not self.safety_horizon:
             raise ConfigError("train.safety_encoder: true needs train.safety_horizon other than 0; allowed: false")
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
-                     "tolerant_formation", "obstacle_forecast", "follower_answers_leader", "mirror",
-                     "answer_every_leader_move", "rollout_veto", "safety_encoder"):
+                     "obstacle_forecast", "follower_answers_leader", "answer_every_leader_move", "safety_encoder"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:
             raise ConfigError(f"train.exploration: {self.exploration!r} is not allowed; "
                               f"allowed: {', '.join(EXPLORATIONS)}")
-        if self.label_order not in LABEL_ORDERS:
-            raise ConfigError(f"train.label_order: {self.label_order!r} is not allowed; "
-                              f"allowed: {', '.join(LABEL_ORDERS)}")
-        if self.follower_labels not in FOLLOWER_LABELS:
-            raise ConfigError(f"train.follower_labels: {self.follower_labels!r} is not allowed; "
-                              f"allowed: {', '.join(FOLLOWER_LABELS)}")
-        if self.follower_answers_leader and self.follower_labels != "teacher":
-            raise ConfigError(f"train.follower_labels: {self.follower_labels!r} is not allowed with "
-                              "train.follower_answers_leader: true (its labels answer the leader's move); "
-                              "allowed: teacher")
         if self.answer_every_leader_move and not (self.follower_answers_leader and self.dagger):
             raise ConfigError("train.answer_every_leader_move: true is not allowed without "
                               "train.follower_answers_leader: true and train.dagger: true; allowed: false")
@@ -231,9 +186,6 @@ class TrainSettings:
         if self.any_shortest_move != "none" and not (self.follower_answers_leader and self.dagger):
             raise ConfigError(f"train.any_shortest_move: {self.any_shortest_move} is not allowed without "
                               "train.follower_answers_leader: true and train.dagger: true; allowed: none")
-        if self.label_preference > 0 and self.any_shortest_move == "none":
-            raise ConfigError(f"train.label_preference: {self.label_preference} is not allowed with "
-                              "train.any_shortest_move: none (the label is all the margin accepts); allowed: 0")
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
         if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0
@@ -249,15 +201,6 @@ class TrainSettings:
                               "allowed: null or three integers >= 0 (cells above, below, either side)")
         if len(self.channels) != 3 or not all(isinstance(c, int) and c >= 1 for c in self.channels):
             raise ConfigError(f"train.channels: {list(self.channels)!r} is not allowed; allowed: three integers >= 1")
-
-
-def lr_schedule(t: TrainSettings, total_steps: float) -> float | list[list[float]]:
-    """The learning rate as RLlib's ``lr`` takes it: ``t.lr``, or with ``t.lr_end`` a piecewise-linear
-    schedule over ``total_steps`` of the counter the learner reports (learner updates on the formation
-    path, env steps on the stock one): ``lr`` for the first half, then linearly down to ``lr_end``."""
-    if t.lr_end is None:
-        return t.lr
-    return [[0, t.lr], [total_steps / 2, t.lr], [total_steps, t.lr_end]]
 
 
 @dataclass(frozen=True)
@@ -374,11 +317,6 @@ class RunConfig:
 
     def __post_init__(self) -> None:
         patches = self.game.obs_type == "pixels" and not self.train.screen_cells
-        if self.train.row_scan and patches:
-            raise ConfigError(f"train.row_scan: {self.train.row_scan} needs the screen read per cell; "
-                              "allowed: 0, or any with train.screen_cells: true or game.obs_type: grid")
-        if self.train.mirror and (needs := mirror_symmetric(self.game)) is not None:
-            raise ConfigError(f"train.mirror: true needs {needs}; allowed: false, or true on settings 1-2")
         if self.train.any_shortest_move != "none" and self.game.n_followers != 1:
             raise ConfigError(f"train.any_shortest_move: {self.train.any_shortest_move} needs game.n_followers: 1 "
                               f"(not {self.game.n_followers}); allowed: none")
@@ -447,6 +385,7 @@ def section_of(name: str, values: dict[str, Any] | None) -> Any:
     values = values or {}
     if not isinstance(values, dict):
         raise ConfigError(f"{name}: a mapping is needed, got {values!r}")
+    values = drop_removed(name, values)
     known = {f.name for f in dataclasses.fields(kind)}
     for key in values:
         if key not in known:
@@ -456,10 +395,10 @@ def section_of(name: str, values: dict[str, Any] | None) -> Any:
 
 # keys added to the config after runs were saved without them, with the value those runs trained with
 LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("train", "screen_cells"): False,
-                                          ("train", "obstacle_forecast"): False, ("train", "row_scan"): 0,
-                                          ("train", "follower_answers_leader"): False, ("train", "mirror"): False,
+                                          ("train", "obstacle_forecast"): False,
+                                          ("train", "follower_answers_leader"): False,
                                           ("train", "answer_every_leader_move"): False,
-                                          ("train", "any_shortest_move"): "none", ("train", "label_preference"): 0.0}
+                                          ("train", "any_shortest_move"): "none"}
 
 
 class _YamlLoader(yaml.SafeLoader):
@@ -510,16 +449,11 @@ def _integer(obj, name: str, low: int, section: str = "train", also: str | None 
         raise ConfigError(f"{section}.{name}: {value!r} is not allowed; allowed: {allowed}")
 
 
-def _number(obj, name: str, low: float, high: float, section: str = "train", low_open: bool = False,
-            nullable: bool = False) -> None:
+def _number(obj, name: str, low: float, high: float, section: str = "train", low_open: bool = False) -> None:
     value = getattr(obj, name)
-    if nullable and value is None:
-        return
     ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
     if ok:
         ok = (low < value if low_open else low <= value) and value <= high
     if not ok:
         bound = "(" if low_open else "["
-        null = "null or " if nullable else ""
-        raise ConfigError(f"{section}.{name}: {value!r} is not allowed; "
-                          f"allowed: {null}a number in {bound}{low}, {high}]")
+        raise ConfigError(f"{section}.{name}: {value!r} is not allowed; allowed: a number in {bound}{low}, {high}]")

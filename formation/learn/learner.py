@@ -22,7 +22,6 @@ from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from formation.game.core import joint_mask_bits
-from formation.game.mirror import mirror_steps
 from formation.learn.module import PREPARED_NEXT_OBS, PREPARED_OBS, SAFETY_LOGITS
 from formation.learn.qnet import N_ACTIONS, double_q_target, large_margin_sets
 
@@ -39,12 +38,11 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
     ``answering`` (it answers the leader) gets actions as pairs with the leader's move, ``4 * leader +
     own`` (its Q-values' index), and labels as one own move per move of the leader, (N, 4): the
     sample's ``answers`` where it has them, its label in the row of the move the leader made, -1 where
-    there is none. With ``any_shortest_move`` "team" (one follower), each module also gets ``ACCEPTED``,
-    the shape of its labels and one more axis of 4 bools: every move of its own that the sample's
-    ``accepted`` joint actions hold (for the leader, with any follower move; for the follower, in
-    each row, with that move of the leader), and the label's move; with "leader" or "toward", the
-    leader's module alone. With ``safety`` every module gets ``SAFE``, the sample's ``safe`` joint moves as
-    (N, 16) bools (leader's move, follower's move, row by row), one row per agent of the module."""
+    there is none. With ``any_shortest_move`` "leader" (one follower), the leader's module also gets
+    ``ACCEPTED``, (N, 4) bools: every move of the leader that the sample's ``accepted`` joint actions hold
+    (with any follower move), and the label's move. With ``safety`` every module gets ``SAFE``, the sample's
+    ``safe`` joint moves as (N, 16) bools (leader's move, follower's move, row by row), one row per agent of
+    the module."""
     rows: dict[str, list[int]] = {}
     for agent, module in enumerate(module_of_agent):
         rows.setdefault(module, []).append(agent)
@@ -61,25 +59,18 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
                        Columns.ACTIONS: np.concatenate(actions),
                        RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
                        DISCOUNTS: shared["discounts"], LABELS: np.concatenate(labels), WEIGHTS: shared["weights"]}
-        if any_shortest_move == "team" or (any_shortest_move in ("leader", "toward") and agents == [0]):
-            out[module][ACCEPTED] = np.concatenate([_accepted_moves(sample["accepted"], a, label)
-                                                    for a, label in zip(agents, labels)])
+        if any_shortest_move == "leader" and agents == [0]:
+            out[module][ACCEPTED] = _accepted_moves(sample["accepted"], labels[0])
         if safety:
             out[module][SAFE] = _repeat(joint_mask_bits(sample["safe"]).reshape(len(leader), -1), len(agents))
     return out
 
 
-def _accepted_moves(accepted: np.ndarray, agent: int, labels: np.ndarray) -> np.ndarray:
-    """``agent``'s accepted moves, bools of the shape of its ``labels`` and one more axis of 4 (see
-    ``module_batches``): the leader's (agent 0) moves that start a shortest path with some follower move,
-    or the follower's (agent 1) moves that do with each leader move (labels (N, 4), one row each); and
-    each label's move."""
-    joint = joint_mask_bits(accepted)  # (N, leader's move, follower's move)
-    moves = joint.any(2) if agent == 0 else joint
-    if moves.ndim != labels.ndim + 1:
-        raise ValueError(f"any_shortest_move: agent {agent}'s labels have shape {labels.shape}; "
-                         "the leader's must be (N,), an answering follower's (N, 4)")
-    return moves | ((labels[..., None] == np.arange(N_ACTIONS)) & (labels[..., None] >= 0))
+def _accepted_moves(accepted: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """The leader's accepted moves, (N, 4) bools (see ``module_batches``): those that start a shortest path
+    with some follower move, and each label's move (``labels`` (N,))."""
+    moves = joint_mask_bits(accepted).any(2)  # (N, leader's move, follower's move) -> the leader's
+    return moves | ((labels[:, None] == np.arange(N_ACTIONS)) & (labels[:, None] >= 0))
 
 
 def _answer_rows(sample: dict[str, np.ndarray], agent: int, leader: np.ndarray) -> np.ndarray:
@@ -126,7 +117,6 @@ def _repeat(a: np.ndarray, copies: int) -> np.ndarray:
 class FormationLearner(DQNTorchLearner):
     _replays: list = []
     _threads: ThreadPoolExecutor | None = None
-    _mirror: np.random.Generator | None = None  # train.mirror: draws which steps of a batch are mirrored
     module_threads = True  # False: RLlib's serial update (the same arithmetic, one module after the other)
 
     def _uncompiled_update(self, batch: dict, **kwargs):
@@ -178,13 +168,12 @@ class FormationLearner(DQNTorchLearner):
             for module_id, prepared in users:
                 batch[module_id][prepared] = x
 
-    def set_replays(self, handles: list, module_of_agent: list[str], answering: list[str] = (), mirror: bool = False,
-                    seed: int = 0, any_shortest_move: str = "none", safety: bool = False) -> bool:
-        """The replay shards to pull from, each agent's module, the modules that answer the leader,
-        whether to see a random half of every batch in a mirror (``train.mirror``), and whether the margin
-        accepts every move that starts a shortest path (``train.any_shortest_move``)."""
+    def set_replays(self, handles: list, module_of_agent: list[str], answering: list[str] = (),
+                    any_shortest_move: str = "none", safety: bool = False) -> bool:
+        """The replay shards to pull from, each agent's module, the modules that answer the leader, whether
+        the margin accepts every move that starts a shortest path (``train.any_shortest_move``), and whether
+        the modules learn a safety head."""
         self._replays = list(handles)
-        self._mirror = np.random.default_rng([seed, 7]) if mirror else None
         self._module_of_agent = list(module_of_agent)
         self._answering = frozenset(answering)
         self._any_shortest_move = any_shortest_move
@@ -195,13 +184,6 @@ class FormationLearner(DQNTorchLearner):
         self._stats: dict[str, dict[str, float]] = {}
         self.num_updates = getattr(self, "num_updates", 0)
         return True
-
-    def augment(self, sample: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        """A replay sample as the modules learn from it: with ``train.mirror``, a random half of its steps
-        seen in a mirror."""
-        if self._mirror is None:
-            return sample
-        return mirror_steps(sample, self._mirror.random(len(sample["actions"])) < 0.5)
 
     def compute_loss_for_module(self, *, module_id: str, config: Any, batch: dict[str, Any],
                                 fwd_out: dict[str, Any]) -> torch.Tensor:
@@ -217,10 +199,8 @@ class FormationLearner(DQNTorchLearner):
             labelled = _label_moves(batch[LABELS], q.shape[1])
             if ACCEPTED not in batch:
                 large_margin, taught = _margin(q, labelled, config.margin_gap)
-            else:  # every accepted move; with a label preference, a second margin towards the label itself
+            else:  # every accepted move
                 large_margin, taught = _margin(q, _accepted_rows(batch[ACCEPTED]), config.margin_gap)
-                if config.label_preference > 0:
-                    large_margin = large_margin + config.label_preference * _margin(q, labelled, config.margin_gap)[0]
             if taught.any():
                 loss = loss + config.margin * large_margin[taught].mean()
                 # prioritized replay also revisits the states where the module disagrees with the teacher
@@ -234,8 +214,6 @@ class FormationLearner(DQNTorchLearner):
             loss = loss + config.safety_weight * safety
             wrong = (logits.detach() > 0) != safe.bool()
             self._stats[module_id].update(safety_loss=safety.item(), safety_error=wrong.float().mean().item())
-            if config.safety_priority:  # and the states where the head's verdicts are wrong, the more the more of them
-                priority = priority + config.safety_priority * wrong.sum(1)
         self._priority[module_id] = priority.cpu().numpy()
         return loss
 
@@ -260,7 +238,7 @@ class FormationLearner(DQNTorchLearner):
                 break
             self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma, min_records)
             incarnation = seen[index] = sample.pop("incarnation")
-            batches = module_batches(self.augment(sample), self._module_of_agent, self._answering,
+            batches = module_batches(sample, self._module_of_agent, self._answering,
                                      self._any_shortest_move, self._safety)
             n = len(sample["ids"])
             batch = MultiAgentBatch({m: SampleBatch(b) for m, b in batches.items()}, env_steps=n)

@@ -3,7 +3,7 @@
 It implements RLlib's ``QNetAPI`` and ``TargetNetworkAPI``, so RLlib's DQN learner (the stock
 path) and ours both train it, and ``InferenceOnlyAPI``, so rollout actors get weights without
 the target network. ``model_config``: ``hidden``, ``channels``, ``window``, ``frame_channels``, ``cells``,
-``forecast``, ``row_scan``, ``answers_leader``, ``safety``, ``safety_encoder`` (see ``formation.learn.qnet``).
+``forecast``, ``answers_leader``, ``safety``, ``safety_encoder`` (see ``formation.learn.qnet``).
 A module that answers the leader has 16 actions, (leader's move, own move) as ``4 * leader + own``: its greedy and
 exploring forward passes pick among those, so rollouts and evaluation pick its row themselves
 (``formation.learn.qnet.team_q_values``).
@@ -38,7 +38,6 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
                                          window=tuple(window) if window is not None else None,
                                          frame_channels=cfg.get("frame_channels"), cells=cfg.get("cells"),
                                          forecast=bool(cfg.get("forecast", False)),
-                                         row_scan=int(cfg.get("row_scan", 0)),
                                          answers_leader=bool(cfg.get("answers_leader", False)),
                                          safety=bool(cfg.get("safety", False)),
                                          safety_encoder=bool(cfg.get("safety_encoder", False)))

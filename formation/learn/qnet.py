@@ -230,29 +230,6 @@ class ObstacleForecast(nn.Module):
         return danger.permute(0, 1, 3, 2).float()
 
 
-class RowScan(nn.Module):
-    """``(N, C, H, W)`` -> ``(N, C + K, H, W)``: the input and ``K`` learnt planes, computed row by row from
-    the top (row 0, towards the destination) down: ``h[i] = relu(conv3(h[i - 1]) + conv1(x[i]))``, a
-    recurrent convolution along the rows (as value iteration networks, Tamar et al. 2016) that can carry
-    along a row what is reachable from the rows above it through moves of one column at most."""
-
-    def __init__(self, channels: int, planes: int):
-        super().__init__()
-        self.carry = nn.Conv1d(planes, planes, kernel_size=3, padding=1)
-        self.read = nn.Conv1d(channels, planes, kernel_size=1)
-        self.planes = planes
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        n, _, h, w = x.shape
-        inputs = self.read(x.permute(0, 2, 1, 3).reshape(n * h, -1, w)).reshape(n, h, self.planes, w)
-        state = torch.zeros(n, self.planes, w, device=x.device, dtype=x.dtype)
-        rows = []
-        for i in range(h):
-            state = torch.relu(self.carry(state) + inputs[:, i])
-            rows.append(state)
-        return torch.cat([x, torch.stack(rows, dim=2)], dim=1)
-
-
 class DuelingQNetwork(nn.Module):
     """uint8 observations -> Q-values of the four actions.
 
@@ -262,18 +239,16 @@ class DuelingQNetwork(nn.Module):
     ``cells`` (board height, width), screens only: read one pixel per cell first (``ScreenCells``);
     ``window`` is then in cells, and the encoder's first layer reads every cell.
     ``forecast``: add the planes of an ``ObstacleForecast`` to what the encoder reads (grids, or screens
-    read per cell, of two frames or more). ``row_scan``: add that many planes of a ``RowScan`` before
-    the encoder (0: none). ``answers_leader``: 16 Q-values, one per (leader's move, own move), row by
-    row, instead of 4. ``safety``: a second head beside the dueling one, 16 logits of whether each joint
-    move (leader's move, follower's move, row by row) is safe (``safety_logits``, ``train.safety_horizon``).
-    ``safety_encoder``: that head reads an encoder of its own (and a row scan of its own, if any), a copy of
-    the layers the Q-values read, instead of their features (``train.safety_encoder``)."""
+    read per cell, of two frames or more). ``answers_leader``: 16 Q-values, one per (leader's move, own
+    move), row by row, instead of 4. ``safety``: a second head beside the dueling one, 16 logits of whether
+    each joint move (leader's move, follower's move, row by row) is safe (``safety_logits``,
+    ``train.safety_horizon``). ``safety_encoder``: that head reads an encoder of its own, a copy of the
+    layers the Q-values read, instead of their features (``train.safety_encoder``)."""
 
     def __init__(self, obs_shape: tuple[int, int, int], high: float = 255.0, hidden: int = 128,
                  channels: tuple[int, int, int] = (16, 32, 32), window: tuple[int, int, int] | None = None,
                  frame_channels: int | None = None, cells: tuple[int, int] | None = None, forecast: bool = False,
-                 row_scan: int = 0, answers_leader: bool = False, safety: bool = False,
-                 safety_encoder: bool = False):
+                 answers_leader: bool = False, safety: bool = False, safety_encoder: bool = False):
         super().__init__()
         self.obs_shape = tuple(obs_shape)
         screens = min(obs_shape[:2]) >= 64
@@ -298,13 +273,6 @@ class DuelingQNetwork(nn.Module):
         if window is not None:
             self.window = LeaderWindow(seen, tuple(window), frame_channels, screens)
             seen = self.window.out_shape
-        read = seen  # what the layers with weights read
-        self.row_scan = None
-        if row_scan:
-            if screens and self.cells is None:
-                raise ValueError("row_scan: screens must be read per cell (cells)")
-            self.row_scan = RowScan(seen[2], row_scan)
-            seen = (*seen[:2], seen[2] + row_scan)
         self.encoder = encoder(seen, channels, screens and self.cells is None)
         with torch.no_grad():
             n = self.encoder(torch.zeros(1, seen[2], seen[0], seen[1])).shape[1]
@@ -318,8 +286,8 @@ class DuelingQNetwork(nn.Module):
         if safety_encoder:
             if not safety:
                 raise ValueError("safety_encoder: needs a safety head (safety)")
-            scan = [RowScan(read[2], row_scan)] if row_scan else []
-            self.safety_encoder = nn.Sequential(*scan, encoder(seen, channels, screens and self.cells is None))
+            # wrapped once more, as the shipped policies' weights are named (safety_encoder.0.*)
+            self.safety_encoder = nn.Sequential(encoder(seen, channels, screens and self.cells is None))
         # what ``prepare`` depends on: equal keys, equal outputs for the same observations
         cells, forecast, window = self.cells, self.forecast, self.window
         self.prepare_key = (self.obs_shape, 1.0 / high,
@@ -348,8 +316,6 @@ class DuelingQNetwork(nn.Module):
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         """What both heads read, from ``prepare``'s output."""
-        if self.row_scan is not None:
-            x = self.row_scan(x)
         return self.encoder(x)
 
     def q_values(self, x: torch.Tensor) -> torch.Tensor:

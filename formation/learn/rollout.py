@@ -8,8 +8,6 @@ No Ray, no torch: the rollout actors (EnvRunners) and the tests use it alike.
 
 from __future__ import annotations
 
-import collections
-
 import numpy as np
 
 from formation.config import GameConfig
@@ -17,13 +15,7 @@ from formation.game import BatchedGame, Observer, Scenario
 from formation.game.core import MOVES
 from formation.learn.replay import Chunk
 
-# a failure restart starts from the state this many steps before a failed episode's last step (drawn
-# uniformly, both ends included, as far back as the episode went): the move that doomed the team is often a
-# few steps before the collision or break (experiments/first_mistake.py), and an episode's first screen is
-# repeated (no motion visible), so the state just before the end would be seen unlike in play
-FAILURE_STEPS_BACK = (2, 8)
-FAILURE_POOL = 512  # the most recent failures a rollout keeps to restart from
-STARTS = ("spec", "exploring", "failure")  # where an episode started: its statistics' "start"
+STARTS = ("spec", "exploring")  # where an episode started: its statistics' "start"
 
 
 def exploring_start(scenario: Scenario, config: GameConfig, rng: np.random.Generator, tries: int = 20) -> Scenario:
@@ -45,25 +37,17 @@ def exploring_start(scenario: Scenario, config: GameConfig, rng: np.random.Gener
 
 class GameRollout:
     def __init__(self, config: GameConfig, batch_size: int, seed: int | None = None, stream_offset: int = 0,
-                 potential=None, shaping: float = 0.0, gamma: float = 0.99, exploring_starts: float = 0.0,
-                 failure_restarts: float = 0.0):
+                 potential=None, shaping: float = 0.0, gamma: float = 0.99, exploring_starts: float = 0.0):
         """``potential`` (a ``formation.learn.shaping.Potential``), if given, adds the shaping term
         ``shaping * (gamma * Phi(s') - Phi(s))`` to every stored reward (never to the episode
         statistics, which report the game's own reward). ``exploring_starts``: the fraction of episodes
-        that start from an ``exploring_start`` instead of the spec's places. ``failure_restarts``: the
-        fraction of episodes that start from the state ``FAILURE_STEPS_BACK`` steps before the end of one of
-        the ``FAILURE_POOL`` latest episodes of these games that ended in a collision or a formation break
-        (none before the first such failure); the rest may then take an exploring start."""
+        that start from an ``exploring_start`` instead of the spec's places."""
         self.config = config
         self.potential, self.shaping, self.gamma = potential, shaping, gamma
         self.game = BatchedGame(config, batch_size=batch_size, seed=seed)
         self.game.reset()
-        self.exploring_starts, self.failure_restarts = exploring_starts, failure_restarts
+        self.exploring_starts = exploring_starts
         self._start_rng = np.random.default_rng([seed or 0, stream_offset, 11])
-        # with failure restarts, each game's states of its episode so far, newest last (only those a restart may
-        # go back to)
-        self._history = [collections.deque(maxlen=FAILURE_STEPS_BACK[1]) for _ in range(batch_size)]
-        self._failures: collections.deque = collections.deque(maxlen=FAILURE_POOL)  # states to restart from
         self._starts = np.zeros(batch_size, np.int8)  # each game's episode: its index in STARTS
         self._restart(np.ones(batch_size, bool))
         self.observer = Observer(self.game)
@@ -92,9 +76,6 @@ class GameRollout:
         (see ``Chunk``)."""
         g = self.game
         frames_before, first = self._frames, self._first
-        if self.failure_restarts > 0:
-            for i, history in enumerate(self._history):
-                history.append(g.scenario(i))
         g.step(actions)
         done = g.done.copy()
         rewards = g.rewards.copy()
@@ -129,8 +110,6 @@ class GameRollout:
                                  rewards=np.zeros((n, self.n_agents), np.float32), terminated=np.zeros(n, bool),
                                  truncated=np.zeros(n, bool), labels=np.full((n, self.n_agents), -1, np.int8))
                 records = concatenate([records, terminal])
-            if self.failure_restarts > 0:
-                self._keep_failures(np.flatnonzero(g.terminated & ~g.success))
             g.reset(mask=done)
             self._restart(done)
             if self.potential is not None:
@@ -140,30 +119,9 @@ class GameRollout:
         self._first = done
         return records
 
-    def _keep_failures(self, failed: np.ndarray) -> None:
-        """Keep, for each game in ``failed`` (its episode just ended in a failure), a state a few steps before
-        the end to restart from (``_restart`` then forgets the episode's states)."""
-        low, high = FAILURE_STEPS_BACK
-        for i in failed.tolist():
-            history = self._history[i]
-            if len(history) >= low:
-                back = int(self._start_rng.integers(low, min(high, len(history)) + 1))
-                self._failures.append(history[-back])
-
     def _restart(self, restarted: np.ndarray) -> None:
-        """Start a random ``failure_restarts`` share of the ``restarted`` games (just reset) from a kept
-        failure, then move the team of a random ``exploring_starts`` share of the others."""
+        """Move the team of a random ``exploring_starts`` share of the ``restarted`` games (just reset)."""
         self._starts[restarted] = STARTS.index("spec")
-        if self.failure_restarts > 0:  # only then is there a history to forget
-            for i in np.flatnonzero(restarted).tolist():
-                self._history[i].clear()
-        if self.failure_restarts > 0 and self._failures:
-            back = restarted & (self._start_rng.random(len(restarted)) < self.failure_restarts)
-            if back.any():
-                picks = self._start_rng.integers(0, len(self._failures), int(back.sum()))
-                self.game.load([self._failures[k] for k in picks], mask=back)
-                self._starts[back] = STARTS.index("failure")
-                restarted = restarted & ~back
         if self.exploring_starts <= 0:
             return
         moved = restarted & (self._start_rng.random(len(restarted)) < self.exploring_starts)

@@ -21,11 +21,10 @@ from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_
 
 from formation.game import MOVES
 from formation.learn.config import RunConfig, TrainSettings
-from formation.learn.qnet import outputs_of, q_values_of, team_q_values
+from formation.learn.qnet import q_values_of, team_q_values
 from formation.learn.rollout import GameRollout, concatenate
 from formation.learn.shaping import Potential
 from formation.learn.teacher import Teacher, safety_labels
-from formation.policy import greedy_within
 
 
 def spaces_of(run: RunConfig) -> tuple[gym.spaces.Box, gym.spaces.Discrete]:
@@ -90,11 +89,10 @@ class RolloutActor(EnvRunner, Checkpointable):
         index = getattr(self, "worker_index", 0) or 0
         games = run.resources.games_per_actor
         t = run.train
-        potential = Potential(t.potential, run.game, t.planner_slack) if t.shaping > 0 and t.potential != "none" \
-            else None
+        potential = Potential(t.potential, run.game) if t.shaping > 0 and t.potential != "none" else None
         self.rollout = GameRollout(run.game, games, seed=t.seed * 10_007 + index, stream_offset=index * games,
                                    potential=potential, shaping=t.shaping, gamma=t.gamma,
-                                   exploring_starts=t.exploring_starts, failure_restarts=t.failure_restarts)
+                                   exploring_starts=t.exploring_starts)
         self._rng = np.random.default_rng([t.seed, index])  # exploration
         self._demo_games = int(round(run.train.demonstrations * games))
         self._plans: dict[int, list] = {}
@@ -139,33 +137,29 @@ class RolloutActor(EnvRunner, Checkpointable):
     def _safe(self) -> np.ndarray:
         """``train.safety_horizon``: what the safety head learns of every game's present state
         (``teacher.safety_labels``)."""
-        game, t = self.rollout.game, self.run.train
-        return safety_labels([game.scenario(i) for i in range(game.batch_size)], game.steps, game.config,
-                             t.safety_horizon, t.safety_slack, t.planner_slack, self._teacher)
+        game = self.rollout.game
+        return safety_labels([game.scenario(i) for i in range(game.batch_size)], game.config,
+                             self.run.train.safety_horizon)
 
     def _accepted(self, joints: np.ndarray) -> np.ndarray:
         """``train.any_shortest_move``: the joint actions that start a shortest path from every game's present
-        state (``Teacher.accepted``, bit masks; with "toward", those that do not take the leader away from the
-        destination's column), 0 where the teacher has no label."""
+        state (``Teacher.accepted``, bit masks), 0 where the teacher has no label."""
         game, accepted = self.rollout.game, np.zeros(self.rollout.batch_size, np.uint16)
-        toward = self.run.train.any_shortest_move == "toward"
         for i in np.flatnonzero(joints[:, 0] >= 0):
             accepted[i] = self._teacher.accepted(game.scenario(i), tuple(int(a) for a in joints[i]),
-                                                 first_step=bool(game.steps[i] == 0), toward=toward)
+                                                 first_step=bool(game.steps[i] == 0))
         return accepted
 
-    def _labels(self, joints: np.ndarray, greedy: np.ndarray, actions: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray | None]:
+    def _labels(self, joints: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """The labels to learn from, and the answers (``Chunk``) or None: the teacher's ``joints``; with
-        ``train.follower_labels: response`` the followers' moves answering the leader's ``greedy`` move;
-        with ``train.follower_answers_leader`` the teacher's answer to the move the leader plays
-        (``actions``), -1 for the followers where no move of theirs survives it; with
-        ``train.answer_every_leader_move`` also its answers to every move the leader could have made."""
+        ``train.follower_answers_leader`` the teacher's answer to the move the leader plays (``actions``), -1
+        for the followers where no move of theirs survives it; with ``train.answer_every_leader_move`` also
+        its answers to every move the leader could have made."""
         t, game = self.run.train, self.rollout.game
-        if t.follower_labels != "response" and not t.follower_answers_leader:
+        if not t.follower_answers_leader:
             return joints, None
         labels = joints.copy()
-        leader = actions[:, 0] if t.follower_answers_leader else greedy[:, 0]
+        leader = actions[:, 0]
         if t.answer_every_leader_move:
             answers = np.full((*joints.shape, len(MOVES)), -1, np.int8)
             for i in np.flatnonzero(joints[:, 0] >= 0):
@@ -177,49 +171,35 @@ class RolloutActor(EnvRunner, Checkpointable):
             return labels, answers
         # where the leader makes the teacher's move, the label stands as it is
         for i in np.flatnonzero((joints[:, 0] >= 0) & (leader != joints[:, 0])):
-            scenario, first, joint = game.scenario(i), game.steps[i] == 0, tuple(int(a) for a in joints[i])
-            if t.follower_answers_leader:
-                answer = self._teacher.answer(scenario, joint, int(leader[i]))
-                labels[i, 1:] = answer[1:] if answer is not None else -1
-            else:
-                labels[i] = self._teacher.respond(scenario, joint, int(leader[i]), first)
+            answer = self._teacher.answer(game.scenario(i), tuple(int(a) for a in joints[i]), int(leader[i]))
+            labels[i, 1:] = answer[1:] if answer is not None else -1
         return labels, None
 
-    def _actions(self, observations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The greedy actions (games, agents), and the epsilon-greedy ones to play. Followers that
-        answer the leader (``train.follower_answers_leader``) answer the move the leader plays, and
-        explore on their own only with ``train.exploration: independent``. With ``train.rollout_veto``
-        both keep to the joint moves the safety heads judge safe, as the trained team does
-        (``formation.policy.greedy_within``): the leader's greedy move among those, the followers' answer
-        among the safe answers to the move the leader plays (any answer where none is judged safe)."""
+    def _actions(self, observations: np.ndarray) -> np.ndarray:
+        """The epsilon-greedy actions (games, agents) to play. Followers that answer the leader
+        (``train.follower_answers_leader``) answer the move the leader plays, and explore on their own only
+        with ``train.exploration: independent``."""
         t, modules = self.run.train, self._modules_of_agent
-        obs = torch.from_numpy(observations)
         with torch.no_grad():
-            networks = {m: self.module[m].q_network for m in sorted(set(modules))}
-            q, safe = outputs_of(networks, obs) if t.rollout_veto else (q_values_of(networks, obs), None)
+            q = q_values_of({m: self.module[m].q_network for m in sorted(set(modules))},
+                            torch.from_numpy(observations))
         q = {m: v.numpy() for m, v in q.items()}
-        learned = None if safe is None else safe.numpy() > 0.5
-        greedy = team_q_values(q, modules).argmax(-1) if learned is None else greedy_within(q, modules, None, learned)
+        greedy = team_q_values(q, modules).argmax(-1)
         epsilon = epsilon_at(self.num_env_steps_sampled_lifetime, t)
         if not t.follower_answers_leader:
-            return greedy, epsilon_greedy(greedy, epsilon, self._rng, joint=t.exploration == "joint")
+            return epsilon_greedy(greedy, epsilon, self._rng, joint=t.exploration == "joint")
         leader = epsilon_greedy(greedy[:, :1], epsilon, self._rng, joint=False)[:, 0]
-        if learned is None:
-            actions = team_q_values(q, modules, leader_moves=leader).argmax(-1)
-        else:  # the joint moves open to the follower: its answers to the move the leader plays
-            played = np.zeros(learned.shape, bool)
-            played[np.arange(len(leader)), leader] = True
-            actions = greedy_within(q, modules, played, learned)
+        actions = team_q_values(q, modules, leader_moves=leader).argmax(-1)
         actions[:, 0] = leader  # its own column holds its greedy move
         if t.exploration == "independent":
             actions[:, 1:] = epsilon_greedy(actions[:, 1:], epsilon, self._rng, joint=False)
-        return greedy, actions
+        return actions
 
     def sample(self, **kwargs) -> dict[str, Any]:
         run, rollout = self.run, self.rollout
         chunks = []
         for _ in range(run.train.steps_per_sample):
-            greedy, actions = self._actions(rollout.observations)
+            actions = self._actions(rollout.observations)
             if run.train.dagger:
                 joints = self._teacher_joints()
             else:
@@ -231,7 +211,7 @@ class RolloutActor(EnvRunner, Checkpointable):
                     actions[i] = labels[i] = self._plans[i].pop(0)
             answers = accepted = None
             if run.train.dagger:
-                labels, answers = self._labels(joints, greedy, actions)
+                labels, answers = self._labels(joints, actions)
             if run.train.any_shortest_move != "none":
                 accepted = self._accepted(joints)
             safe = self._safe() if run.train.safety_head else None
