@@ -24,14 +24,14 @@ from concurrent.futures import ThreadPoolExecutor
 import torch
 
 from formation.game import BatchedGame, Observer
-from formation.learn.algorithm import leader_window_config
 from formation.learn.config import RunConfig
-from formation.learn.qnet import DuelingQNetwork, double_q_target
+from formation.learn.qnet import NetworkSpec, double_q_target
+from formation.learn.team import network_specs
 
 
-def ms_per_update(shape: tuple[int, int, int], batch: int, threads: int, updates: int, window: dict,
-                  device: torch.device) -> float:
-    nets = [DuelingQNetwork(shape, **window).to(device) for _ in range(2)]
+def ms_per_update(spec: NetworkSpec, batch: int, threads: int, updates: int, device: torch.device) -> float:
+    shape = spec.obs_shape
+    nets = [spec.build().to(device) for _ in range(2)]
     targets = [copy.deepcopy(net) for net in nets]
     optimizers = [torch.optim.Adam(net.parameters(), 1e-3) for net in nets]
     obs = torch.randint(0, 2, (batch, *shape), dtype=torch.uint8, device=device)
@@ -80,20 +80,22 @@ def main() -> None:
     for obs_type, stack, batch in (("grid", 2, 64), ("pixels", 4, 32)):
         run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": obs_type, "frame_stack": stack}})
         shape = Observer(BatchedGame(run.game, batch_size=1)).shape
-        widths = {"channels": run.train.channels, "hidden": run.train.hidden}  # the default recipe's
-        small = {"channels": (16, 32, 32), "hidden": 128}  # configs/paper.yaml's
-        plain = dataclasses.replace(run, train=dataclasses.replace(run.train, obstacle_forecast=False))
-        variants = [("", small), (", window", {**widths, **leader_window_config(plain, shape)}),
-                    (", window, forecast", {**widths, **leader_window_config(run, shape)})]  # the default
+
+        def leader(run: RunConfig = run, **train) -> NetworkSpec:  # the run's leader network, these settings changed
+            return network_specs(dataclasses.replace(run, train=dataclasses.replace(run.train, **train)))["leader"]
+
+        # configs/paper.yaml's widths, the whole screen
+        small = leader(channels=(16, 32, 32), hidden=128, leader_window=None, screen_cells=False,
+                       obstacle_forecast=False)
+        variants = [("", small), (", window", leader(obstacle_forecast=False)),
+                    (", window, forecast", leader())]  # the default
         if obs_type == "pixels":  # the default reads cells; the patches it read before
-            patches = dataclasses.replace(plain, train=dataclasses.replace(plain.train, screen_cells=False))
             variants = [("", small), (", window, cells", variants[1][1]),
-                        (", window, patches", {**widths, **leader_window_config(patches, shape)}),
+                        (", window, patches", leader(obstacle_forecast=False, screen_cells=False)),
                         (", window, cells, forecast", variants[2][1])]
-        for name, window in variants:
-            window = {k: tuple(v) if isinstance(v, list) else v for k, v in window.items()}
-            serial = ms_per_update(shape, batch, 1, args.updates, window, device)
-            threaded = ms_per_update(shape, batch, 2, args.updates, window, device)
+        for name, spec in variants:
+            serial = ms_per_update(spec, batch, 1, args.updates, device)
+            threaded = ms_per_update(spec, batch, 2, args.updates, device)
             print(f"{obs_type + ' ' + 'x'.join(map(str, shape)) + name:<42} {batch:>5} {serial:>17.1f} ms "
                   f"{threaded:>9.1f} ms {serial / threaded:>8.2f}x")
 

@@ -24,7 +24,6 @@ from __future__ import annotations
 import copy
 import json
 import pickle
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,8 +31,8 @@ import numpy as np
 import torch
 
 from formation.config import ConfigError, GameConfig
-from formation.learn.config import VETO_FALLBACKS, drop_removed
-from formation.learn.qnet import N_ACTIONS, DuelingQNetwork, outputs_of, team_q_values
+from formation.learn.config import VETO_FALLBACKS
+from formation.learn.qnet import N_ACTIONS, DuelingQNetwork, NetworkSpec, outputs_of, team_q_values
 from formation.shield import Shield, shielded_moves
 
 FORMAT_VERSION = 1
@@ -46,51 +45,6 @@ DEFAULT_VETO_THRESHOLD = 0.5  # what training's heads are fitted to: the better 
 
 class PolicyError(ConfigError):
     """A path that holds no usable policy: one line naming the path and what is wrong."""
-
-
-@dataclass(frozen=True)
-class NetworkSpec:
-    """What ``DuelingQNetwork`` needs to be rebuilt: the card's ``networks.<module>``."""
-
-    obs_shape: tuple[int, int, int]
-    high: float
-    hidden: int
-    channels: tuple[int, int, int]
-    window: tuple[int, int, int] | None = None
-    frame_channels: int | None = None
-    cells: tuple[int, int] | None = None  # a screen read one pixel per cell of this board
-    forecast: bool = False  # the obstacle forecast planes (formation.learn.qnet.ObstacleForecast)
-    answers_leader: bool = False  # 16 Q-values, one per (leader's move, own move) (formation.learn.qnet)
-    safety: bool = False  # a safety head: 16 logits, one per joint move (formation.learn.qnet)
-    safety_encoder: bool = False  # the safety head reads an encoder of its own (formation.learn.qnet)
-
-    def build(self) -> DuelingQNetwork:
-        return DuelingQNetwork(self.obs_shape, high=self.high, hidden=self.hidden, channels=self.channels,
-                               window=self.window, frame_channels=self.frame_channels, cells=self.cells,
-                               forecast=self.forecast, answers_leader=self.answers_leader,
-                               safety=self.safety, safety_encoder=self.safety_encoder)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"obs_shape": list(self.obs_shape), "high": self.high, "hidden": self.hidden,
-                "channels": list(self.channels), "window": list(self.window) if self.window is not None else None,
-                "frame_channels": self.frame_channels, "cells": list(self.cells) if self.cells is not None else None,
-                "forecast": self.forecast, "answers_leader": self.answers_leader,
-                "safety": self.safety, "safety_encoder": self.safety_encoder}
-
-    @classmethod
-    def from_dict(cls, values: dict[str, Any], where: str = "networks") -> NetworkSpec:
-        values = drop_removed(where, values)
-        window = values.get("window")
-        frame_channels, cells = values.get("frame_channels"), values.get("cells")
-        return cls(obs_shape=tuple(int(v) for v in values["obs_shape"]), high=float(values["high"]),
-                   hidden=int(values["hidden"]), channels=tuple(int(v) for v in values["channels"]),
-                   window=tuple(int(v) for v in window) if window is not None else None,
-                   frame_channels=int(frame_channels) if frame_channels is not None else None,
-                   cells=tuple(int(v) for v in cells) if cells is not None else None,
-                   forecast=bool(values.get("forecast", False)),
-                   answers_leader=bool(values.get("answers_leader", False)),
-                   safety=bool(values.get("safety", False)),
-                   safety_encoder=bool(values.get("safety_encoder", False)))
 
 
 class Policy:
@@ -285,31 +239,15 @@ def load(path: str | Path) -> Policy:
 
 
 # ---------------------------------------------------------------------- run folders
-def run_specs(run) -> tuple[dict[str, NetworkSpec], list[str]]:
-    """The network of each module and the module of each agent, as training builds them
-    (``formation.learn.algorithm.module_specs``)."""
-    from formation.learn.algorithm import leader_window_config
-    from formation.learn.rollout_actor import answers_leader, module_of_agent, spaces_of
-
-    obs_space, _ = spaces_of(run)
-    shape = tuple(int(v) for v in obs_space.shape)
-    values = {"obs_shape": shape, "high": float(obs_space.high.max()), "hidden": run.train.hidden,
-              "channels": run.train.channels, **leader_window_config(run, shape)}
-    agent_modules = module_of_agent(run)
-    return {m: NetworkSpec.from_dict({**values, "answers_leader": answers_leader(run, m),
-                                      "safety": run.train.safety_head,
-                                      "safety_encoder": run.train.safety_encoder})
-            for m in sorted(set(agent_modules))}, agent_modules
-
-
 def _load_run(run_dir: Path) -> Policy:
     from formation.learn.config import RunConfig
+    from formation.learn.team import module_of_agent, network_specs
 
     try:
         run = RunConfig.load_saved(run_dir / "config.yaml")
     except ConfigError as err:
         raise PolicyError(f"checkpoint: {str(run_dir / 'config.yaml')!r}: {err}") from None
-    specs, agent_modules = run_specs(run)
+    specs, agent_modules = network_specs(run), module_of_agent(run)
     networks = {}
     for module, spec in specs.items():
         state_file = run_dir / RL_MODULES / module / "module_state.pkl"

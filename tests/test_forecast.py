@@ -6,7 +6,7 @@ import torch
 
 from formation.env import parallel_env
 from formation.game import BatchedGame
-from formation.learn.qnet import FORECAST_LAGS, DuelingQNetwork, ObstacleForecast, ScreenCells
+from formation.learn.qnet import FORECAST_LAGS, NetworkSpec, ObstacleForecast, ScreenCells
 
 
 def true_danger(env, leader_row: int, lags=FORECAST_LAGS) -> np.ndarray:
@@ -84,10 +84,10 @@ def test_first_screen_marks_every_speed_and_direction():
 def test_network_with_forecast_reads_grids_and_cells_and_refuses_patches():
     for shape, cells, high in (((25, 25, 8), None, 1), ((84, 84, 12), (50, 50), 255)):
         for window in (None, (12, 3, 10)):
-            net = DuelingQNetwork(shape, high, window=window, cells=cells, forecast=True)
+            net = NetworkSpec(shape, high, window=window, cells=cells, forecast=True).build()
             obs = torch.randint(0, high + 1, (3, *shape), dtype=torch.uint8)
             assert net(obs).shape == (3, 4)
     with pytest.raises(ValueError, match="per cell"):
-        DuelingQNetwork((84, 84, 12), forecast=True)
+        NetworkSpec((84, 84, 12), forecast=True).build()
     with pytest.raises(ValueError, match="two frames"):
-        DuelingQNetwork((25, 25, 4), 1, forecast=True)
+        NetworkSpec((25, 25, 4), 1, forecast=True).build()

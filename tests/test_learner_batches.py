@@ -162,7 +162,7 @@ def test_threaded_module_updates_equal_rllibs_serial_update(monkeypatch):
     from formation.learn.algorithm import build_algorithm_config
     from formation.learn.config import RunConfig
     from formation.learn.qnet import DuelingQNetwork
-    from formation.learn.rollout_actor import module_of_agent, spaces_of
+    from formation.learn.team import module_of_agent, spaces_of
 
     run = RunConfig.load("configs/smoke.yaml")
     config = build_algorithm_config(run)

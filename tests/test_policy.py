@@ -195,12 +195,13 @@ def test_a_truncated_checkpoint_module_or_a_foreign_card_is_one_line(run_dir, ex
 def test_an_export_of_networks_that_read_screens_per_cell_loads_them_alike(tmp_path, forecast):
     import torch
 
-    from formation.policy import Policy, export, run_specs
+    from formation.learn.team import module_of_agent, network_specs
+    from formation.policy import Policy, export
 
     run = RunConfig.from_dict({"game": {"setting": 3, "obs_type": "pixels", "frame_stack": 2},
                                "train": {"screen_cells": True, "channels": [4, 8, 8], "hidden": 16,
                                          "obstacle_forecast": forecast}})
-    specs, agent_modules = run_specs(run)
+    specs, agent_modules = network_specs(run), module_of_agent(run)
     assert {spec.cells for spec in specs.values()} == {(50, 50)}
     assert {spec.build().forecast is not None for spec in specs.values()} == {forecast}
     torch.manual_seed(0)
@@ -222,11 +223,12 @@ def test_an_export_of_networks_that_read_screens_per_cell_loads_them_alike(tmp_p
 def test_a_follower_that_answers_the_leader_acts_on_the_leaders_move_after_export(tmp_path):
     import torch
 
-    from formation.policy import Policy, export, run_specs
+    from formation.learn.team import module_of_agent, network_specs
+    from formation.policy import Policy, export
 
     run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "grid", "frame_stack": 2},
                                "train": {"channels": [4, 8, 8], "hidden": 16, "follower_answers_leader": True}})
-    specs, agent_modules = run_specs(run)
+    specs, agent_modules = network_specs(run), module_of_agent(run)
     assert specs["follower"].answers_leader and not specs["leader"].answers_leader
     torch.manual_seed(0)
     policy = Policy(run.game, {m: spec.build() for m, spec in specs.items()}, specs, agent_modules, source="test")

@@ -1,11 +1,14 @@
 """The DQN arithmetic against hand computations, and the network's input handling."""
 
 import numpy as np
+import pytest
 import torch
 
+from formation.config import ConfigError
 from formation.learn.qnet import (
     DuelingQNetwork,
     LeaderWindow,
+    NetworkSpec,
     double_q_target,
     dueling,
     large_margin,
@@ -57,7 +60,7 @@ def test_large_margin_towards_a_set_compares_with_the_best_accepted_action():
 
 def test_network_takes_uint8_screens_and_grids():
     for shape, high in (((84, 84, 12), 255), ((25, 25, 8), 1)):
-        net = DuelingQNetwork(shape, high)
+        net = NetworkSpec(shape, high).build()
         obs = torch.randint(0, high + 1, (5, *shape), dtype=torch.uint8)
         q = net(obs)
         assert q.shape == (5, 4) and q.dtype == torch.float32
@@ -96,21 +99,21 @@ def test_leader_window_moves_the_leader_to_a_fixed_place_on_grids():
 def test_leader_window_finds_the_leader_on_rendered_screens():
     from formation.config import GameConfig
     from formation.game import BatchedGame, Observer
-    from formation.learn.algorithm import leader_window_config
     from formation.learn.config import RunConfig
+    from formation.learn.team import network_specs
 
     run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "pixels", "frame_stack": 2},
                                "train": {"leader_window": [2, 1, 3], "screen_cells": False,
                                          "obstacle_forecast": False}})
-    cfg = leader_window_config(run, (84, 84, 6))
+    spec = network_specs(run)["leader"]
     # 3.36 pixels a cell: 2 cells above, 1 below and 3 either side, plus the leader's own cell
-    assert cfg == {"window": [7, 7, 14], "frame_channels": 3}
+    assert (spec.obs_shape, spec.window, spec.frame_channels, spec.cells) == ((84, 84, 6), (7, 7, 14), 3, None)
     game = BatchedGame(GameConfig.from_setting(1, obs_type="pixels", frame_stack=2), 4, seed=3)
     game.reset()
     obs = torch.from_numpy(Observer(game).observe(torch.ones(4, dtype=torch.bool).numpy()).copy())
-    net = DuelingQNetwork((84, 84, 6), 255, window=tuple(cfg["window"]), frame_channels=3)
+    net = spec.build()
     crop = net.window(obs)
-    up, side = cfg["window"][0], cfg["window"][2]
+    up, side = spec.window[0], spec.window[2]
     # every game's window has the leader's blue top-left pixel at (up, side), the block's top-left
     assert torch.equal(crop[:, up, side, 3:6], torch.tensor([[0.0, 0.0, 255.0]] * 4))
     assert torch.equal(crop[:, up - 1, side, 3:6], torch.zeros(4, 3))
@@ -152,20 +155,18 @@ def test_screen_cells_reads_every_cell_of_rendered_screens_without_loss():
 def test_a_screen_read_per_cell_has_its_window_in_cells_with_the_leader_at_the_fixed_place():
     from formation.config import GameConfig
     from formation.game import BatchedGame, Observer
-    from formation.learn.algorithm import leader_window_config
     from formation.learn.config import RunConfig
+    from formation.learn.team import network_specs
 
     run = RunConfig.from_dict({"game": {"setting": 3, "obs_type": "pixels", "frame_stack": 2},
                                "train": {"leader_window": [2, 1, 3], "screen_cells": True}})
-    cfg = leader_window_config(run, (84, 84, 6))
-    assert cfg == {"window": [2, 1, 3], "frame_channels": 3, "cells": [50, 50], "forecast": True}
-    from formation.learn.algorithm import module_specs
-    for spec in module_specs(run).values():  # the RLlib modules training builds read cells too
-        assert spec.build().q_network.cells.out_shape == (50, 50, 6)
+    spec = network_specs(run)["leader"]
+    assert (spec.window, spec.frame_channels, spec.cells, spec.forecast) == ((2, 1, 3), 3, (50, 50), True)
+    assert spec.build().cells.out_shape == (50, 50, 6)
     game = BatchedGame(GameConfig.from_setting(3, obs_type="pixels", frame_stack=2), 4, seed=5)
     game.reset()
     obs = torch.from_numpy(Observer(game).observe(torch.ones(4, dtype=torch.bool).numpy()).copy())
-    net = DuelingQNetwork((84, 84, 6), 255, window=(2, 1, 3), frame_channels=3, cells=(50, 50))
+    net = NetworkSpec((84, 84, 6), 255, window=(2, 1, 3), frame_channels=3, cells=(50, 50)).build()
     crop = net.window(net.cells(obs))
     assert crop.shape == (4, 2 + 1 + 1, 2 * 3 + 1, 7)
     # one entry per cell: the leader's cell at (2, 3)
@@ -184,7 +185,7 @@ def test_a_screen_read_per_cell_has_its_window_in_cells_with_the_leader_at_the_f
                     assert torch.equal(crop[g, i, j, 3:6], board[g, rr, cc].float())
     assert net(obs).shape == (4, 4)
     # without a window the network reads the whole board, one entry per cell
-    whole = DuelingQNetwork((84, 84, 6), 255, cells=(50, 50))
+    whole = NetworkSpec((84, 84, 6), 255, cells=(50, 50)).build()
     assert whole.cells(obs).shape == (4, 50, 50, 6) and whole(obs).shape == (4, 4)
 
 
@@ -205,7 +206,7 @@ def test_a_follower_that_answers_the_leader_reads_the_row_of_the_leaders_move():
     played = team_q_values(q, ["leader", "follower"], leader_moves=moves)
     for i in range(5):  # or of the move the leader plays
         np.testing.assert_array_equal(played[i, 1], follower[i, 4 * moves[i]: 4 * moves[i] + 4])
-    net = DuelingQNetwork((9, 9, 8), high=1.0, answers_leader=True)
+    net = NetworkSpec((9, 9, 8), high=1.0, answers_leader=True).build()
     assert net(torch.zeros(2, 9, 9, 8, dtype=torch.uint8)).shape == (2, 16)
 
 
@@ -215,9 +216,9 @@ def test_networks_that_prepare_alike_share_one_preparation_and_keep_their_q_valu
     torch.manual_seed(0)
     shape = (84, 84, 12)
     reading = {"cells": (25, 25), "forecast": True, "frame_channels": 3}
-    leader = DuelingQNetwork(shape, window=(12, 3, 10), **reading)
-    follower = DuelingQNetwork(shape, window=(12, 3, 10), answers_leader=True, **reading)
-    wider = DuelingQNetwork(shape, window=(12, 3, 12), **reading)
+    leader = NetworkSpec(shape, window=(12, 3, 10), **reading).build()
+    follower = NetworkSpec(shape, window=(12, 3, 10), answers_leader=True, **reading).build()
+    wider = NetworkSpec(shape, window=(12, 3, 12), **reading).build()
     assert leader.prepare_key == follower.prepare_key != wider.prepare_key
     obs = torch.randint(0, 256, (3, *shape), dtype=torch.uint8)
     calls = []
@@ -227,3 +228,23 @@ def test_networks_that_prepare_alike_share_one_preparation_and_keep_their_q_valu
     assert calls == [leader, wider]  # the follower reads the leader's preparation
     for name, net in (("leader", leader), ("follower", follower), ("wider", wider)):
         torch.testing.assert_close(q[name], net(obs))
+
+
+def test_one_spec_builds_the_network_the_rllib_module_and_the_card():
+    """``NetworkSpec`` is the one spelling of a network: training's RLlib module is built from it, the card
+    stores it, and a card of 0.1 (with ``row_scan: 0``) reads back the same spec."""
+    from formation.learn.algorithm import module_specs
+    from formation.learn.config import RunConfig
+    from formation.learn.team import network_specs
+
+    run = RunConfig.load("configs/smoke.yaml", {"train.safety_horizon": 2})
+    specs = network_specs(run)
+    for module, rl_spec in module_specs(run).items():
+        built = rl_spec.build().q_network
+        assert built.spec == specs[module]
+        assert built.state_dict().keys() == specs[module].build().state_dict().keys()
+        card = specs[module].to_dict()
+        assert NetworkSpec.from_dict(card) == specs[module]
+        assert NetworkSpec.from_dict({**card, "row_scan": 0}) == specs[module]
+    with pytest.raises(ConfigError, match=r"^networks\.leader\.rows: unknown key; allowed: obs_shape, "):
+        NetworkSpec.from_dict({**specs["leader"].to_dict(), "rows": 3}, "networks.leader")

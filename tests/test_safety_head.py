@@ -15,7 +15,7 @@ from formation.config import ConfigError, GameConfig
 from formation.game import BatchedGame, Observer
 from formation.learn.config import RunConfig
 from formation.learn.learner import SAFE, module_batches
-from formation.learn.qnet import DuelingQNetwork, outputs_of
+from formation.learn.qnet import NetworkSpec, outputs_of
 from formation.learn.replay import FrameReplay
 from formation.learn.rollout import GameRollout, concatenate
 from formation.planner import (
@@ -25,7 +25,7 @@ from formation.planner import (
     surviving_first_moves_many,
     viable_first_moves_many,
 )
-from formation.policy import NetworkSpec, Policy, export, greedy_within, load
+from formation.policy import Policy, export, greedy_within, load
 
 SMOKE = "configs/smoke.yaml"
 JOINTS = list(itertools.product(range(4), repeat=2))
@@ -91,9 +91,9 @@ def test_path_labels_are_the_moves_that_start_a_successful_path_within_the_slack
 
 def test_the_head_gives_16_logits_beside_unchanged_q_values():
     torch.manual_seed(0)
-    plain = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), answers_leader=True)
+    plain = NetworkSpec((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), answers_leader=True).build()
     torch.manual_seed(0)
-    headed = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), answers_leader=True, safety=True)
+    headed = NetworkSpec((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), answers_leader=True, safety=True).build()
     obs = torch.randint(0, 2, (5, 9, 9, 8), dtype=torch.uint8)
     assert plain.safety is None
     assert torch.equal(plain(obs), headed(obs))  # the head adds weights after the Q-values' own
@@ -102,9 +102,9 @@ def test_the_head_gives_16_logits_beside_unchanged_q_values():
 
 def test_a_head_with_an_encoder_of_its_own_leaves_the_q_values_and_their_layers_alone():
     torch.manual_seed(0)
-    shared = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), safety=True)
+    shared = NetworkSpec((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), safety=True).build()
     torch.manual_seed(0)
-    own = DuelingQNetwork((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), safety=True, safety_encoder=True)
+    own = NetworkSpec((9, 9, 8), high=1.0, hidden=32, channels=(4, 8, 8), safety=True, safety_encoder=True).build()
     assert shared.safety_encoder is None and own.safety_encoder is not None
     obs = torch.randint(0, 2, (5, 9, 9, 8), dtype=torch.uint8)
     assert torch.equal(shared(obs), own(obs))  # its encoder adds weights after the Q-values' own
@@ -123,15 +123,15 @@ def test_a_head_with_an_encoder_of_its_own_leaves_the_q_values_and_their_layers_
     assert own.encoder[0].weight.grad is None
     assert own.safety_encoder[0][0].weight.grad.abs().sum() > 0
     with pytest.raises(ValueError, match="safety_encoder: needs a safety head"):
-        DuelingQNetwork((9, 9, 8), high=1.0, safety_encoder=True)
+        NetworkSpec((9, 9, 8), high=1.0, safety_encoder=True).build()
 
 
 def test_training_and_exports_build_the_head_with_its_encoder(tmp_path):
     from formation.learn.algorithm import module_specs
-    from formation.policy import run_specs
+    from formation.learn.team import module_of_agent, network_specs
 
     run = RunConfig.load(SMOKE, {"train.safety_horizon": 2, "train.safety_encoder": True})
-    specs, agent_modules = run_specs(run)
+    specs, agent_modules = network_specs(run), module_of_agent(run)
     for module, spec in module_specs(run).items():
         trained = spec.build().q_network
         assert trained.safety_encoder is not None and specs[module].safety_encoder

@@ -12,10 +12,8 @@ policy (``leader``, ``follower`` or ``follower_i``) in a MultiRLModuleSpec, mapp
 
 from __future__ import annotations
 
-import math
 import pickle
 import time
-from typing import Any
 
 import gymnasium as gym
 import ray
@@ -33,13 +31,13 @@ from ray.rllib.utils.metrics import (
 
 from formation.config import RunFailed
 from formation.evaluate import play_greedy
-from formation.game.render import GRID_PLANES
 from formation.learn.config import RunConfig
 from formation.learn.learner import FormationLearner
 from formation.learn.module import DuelingQModule
 from formation.learn.replay_actor import ReplayActor
 from formation.learn.rollout import STARTS
-from formation.learn.rollout_actor import RolloutActor, answers_leader, module_of_agent, spaces_of
+from formation.learn.rollout_actor import RolloutActor
+from formation.learn.team import answers_leader, module_of_agent, network_specs, spaces_of
 
 
 def policy_mapping_fn(agent_id, episode=None, **kwargs) -> str:
@@ -92,41 +90,16 @@ class FormationDQNConfig(DQNConfig):
 
 
 def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLModuleSpec]:
-    """One DuelingQModule spec per policy."""
+    """One DuelingQModule spec per policy: its network (``formation.learn.team.network_specs``) and the
+    exploration schedule."""
     t = run.train
     obs_space, act_space = spaces_of(run)
-    model_config = {"hidden": t.hidden, "channels": list(t.channels),
-                    "epsilon": [(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)],
-                    "safety": t.safety_head, "safety_encoder": t.safety_encoder,
-                    **leader_window_config(run, obs_space.shape)}
+    epsilon = [(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)]
     return {m: RLModuleSpec(module_class=DuelingQModule, observation_space=obs_space,
-                            action_space=gym.spaces.Discrete(16) if answers_leader(run, m) else act_space,
-                            model_config={**model_config, "answers_leader": answers_leader(run, m)},
+                            action_space=gym.spaces.Discrete(16) if spec.answers_leader else act_space,
+                            model_config={"network": spec.to_dict(), "epsilon": epsilon},
                             inference_only=inference_only)
-            for m in sorted(set(module_of_agent(run)))}
-
-
-def leader_window_config(run: RunConfig, obs_shape: tuple[int, ...]) -> dict[str, Any]:
-    """``train.leader_window`` (in cells) as the module's ``window`` (in entries of what the network
-    reads: cells of a grid or of a screen read per cell, pixels of a screen) and ``frame_channels``;
-    ``train.screen_cells`` as ``cells``, the board's height and width; ``train.obstacle_forecast`` as
-    ``forecast``."""
-    per_cell = run.game.obs_type == "pixels" and run.train.screen_cells
-    cells = {"cells": [run.game.height, run.game.width]} if per_cell else {}
-    if run.train.obstacle_forecast:
-        cells["forecast"] = True
-    window = run.train.leader_window
-    if window is None:
-        return cells
-    up, down, side = window
-    if run.game.obs_type == "grid":
-        return {"window": [up, down, side], "frame_channels": len(GRID_PLANES), **cells}
-    if per_cell:
-        return {"window": [up, down, side], "frame_channels": 3, **cells}
-    rows, cols = obs_shape[0] / run.game.height, obs_shape[1] / run.game.width  # pixels per cell
-    # the leader's block of pixels starts at its top-left pixel: the window reaches one cell further down and right
-    return {"window": [math.ceil(up * rows), math.ceil((down + 1) * rows), math.ceil((side + 1) * cols)],
-            "frame_channels": 3}
+            for m, spec in network_specs(run).items()}
 
 
 class StockFormationDQNConfig(DQNConfig):
@@ -228,13 +201,14 @@ class GreedyEvaluationMixin:
         return self.play_greedy(episodes, seed)["summary"]
 
     def play_greedy(self, episodes: int | None = None, seed: int | None = None, record: int = 0) -> dict:
-        from formation.policy import Policy, run_specs
+        from formation.policy import Policy
 
         run = self.run
         modules = self.local_modules()
-        specs, names = run_specs(run)
+        specs = network_specs(run)
         # the team as formation.policy.load restores it (with its safety heads' veto, if any)
-        team = Policy(run.game, {m: modules[m].q_network for m in specs}, specs, names, source="training")
+        team = Policy(run.game, {m: modules[m].q_network for m in specs}, specs, module_of_agent(run),
+                      source="training")
         return play_greedy(run.game, team.act_batch, episodes or run.eval.episodes,
                            run.eval.seed if seed is None else seed, record=record)
 

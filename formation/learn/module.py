@@ -2,8 +2,8 @@
 
 It implements RLlib's ``QNetAPI`` and ``TargetNetworkAPI``, so RLlib's DQN learner (the stock
 path) and ours both train it, and ``InferenceOnlyAPI``, so rollout actors get weights without
-the target network. ``model_config``: ``hidden``, ``channels``, ``window``, ``frame_channels``, ``cells``,
-``forecast``, ``answers_leader``, ``safety``, ``safety_encoder`` (see ``formation.learn.qnet``).
+the target network. ``model_config``: ``network``, the network's ``NetworkSpec.to_dict()``
+(``formation.learn.team.network_specs``), and ``epsilon``.
 A module that answers the leader has 16 actions, (leader's move, own move) as ``4 * leader + own``: its greedy and
 exploring forward passes pick among those, so rollouts and evaluation pick its row themselves
 (``formation.learn.qnet.team_q_values``).
@@ -21,7 +21,7 @@ from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, QNetAPI, TargetNetwo
 from ray.rllib.core.rl_module.torch import TorchRLModule
 from ray.rllib.utils.schedules.scheduler import Scheduler
 
-from formation.learn.qnet import DuelingQNetwork
+from formation.learn.qnet import NetworkSpec
 
 # a batch's observations as DuelingQNetwork.prepare makes them, when the learner prepared them already
 PREPARED_OBS, PREPARED_NEXT_OBS = "prepared_obs", "prepared_next_obs"
@@ -30,17 +30,8 @@ SAFETY_LOGITS = "safety_logits"  # a network with a safety head: its (N, 16) log
 
 class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI):
     def setup(self) -> None:
-        space = self.observation_space
         cfg = self.model_config or {}
-        window = cfg.get("window")
-        self.q_network = DuelingQNetwork(space.shape, high=float(space.high.max()), hidden=int(cfg.get("hidden", 128)),
-                                         channels=tuple(cfg.get("channels", (16, 32, 32))),
-                                         window=tuple(window) if window is not None else None,
-                                         frame_channels=cfg.get("frame_channels"), cells=cfg.get("cells"),
-                                         forecast=bool(cfg.get("forecast", False)),
-                                         answers_leader=bool(cfg.get("answers_leader", False)),
-                                         safety=bool(cfg.get("safety", False)),
-                                         safety_encoder=bool(cfg.get("safety_encoder", False)))
+        self.q_network = NetworkSpec.from_dict(cfg["network"]).build()
         # RLlib's DQNConfig puts an epsilon schedule into every module's model_config.
         self.epsilon_schedule = Scheduler(fixed_value_or_schedule=cfg.get("epsilon", 0.05), framework="torch")
 

@@ -21,11 +21,17 @@ the row of the move the leader makes (``team_q_values``).
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
 import numpy as np
 import torch
 from torch import nn
 
+from formation.config import ConfigError
 from formation.game.render import cell_pixel_bounds
+from formation.learn.config import drop_removed
 
 N_ACTIONS = 4
 
@@ -230,26 +236,74 @@ class ObstacleForecast(nn.Module):
         return danger.permute(0, 1, 3, 2).float()
 
 
+@dataclass(frozen=True)
+class NetworkSpec:
+    """Everything a ``DuelingQNetwork`` is built from: what training's RLlib module builds, what a policy card
+    stores (``networks.<module>``, ``to_dict``) and what loading a policy rebuilds (``from_dict``).
+
+    ``obs_shape`` (H, W, C) and ``high`` (the largest observation value): what the network reads. ``window``
+    (rows above, rows below, columns either side of the leader, in entries of the observation): look through
+    a ``LeaderWindow`` first; None: the whole observation as it is. ``frame_channels``: channels of one frame
+    of the stack (None: 3 for screens, 4 for grids). ``cells`` (board height, width), screens only: read one
+    pixel per cell first (``ScreenCells``); ``window`` is then in cells, and the encoder's first layer reads
+    every cell. ``forecast``: add the planes of an ``ObstacleForecast`` to what the encoder reads (grids, or
+    screens read per cell, of two frames or more). ``answers_leader``: 16 Q-values, one per (leader's move,
+    own move), row by row, instead of 4. ``safety``: a second head beside the dueling one, 16 logits of
+    whether each joint move (leader's move, follower's move, row by row) is safe (``safety_logits``,
+    ``train.safety_horizon``). ``safety_encoder``: that head reads an encoder of its own, a copy of the layers
+    the Q-values read, instead of their features (``train.safety_encoder``)."""
+
+    obs_shape: tuple[int, int, int]
+    high: float = 255.0
+    hidden: int = 128
+    channels: tuple[int, int, int] = (16, 32, 32)
+    window: tuple[int, int, int] | None = None
+    frame_channels: int | None = None
+    cells: tuple[int, int] | None = None
+    forecast: bool = False
+    answers_leader: bool = False
+    safety: bool = False
+    safety_encoder: bool = False
+
+    def build(self) -> DuelingQNetwork:
+        return DuelingQNetwork(self)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any], where: str = "network") -> NetworkSpec:
+        """The spec of a card's ``networks.<module>`` (``where``, for errors): cards of 0.1 load unchanged;
+        an unknown key, or a removed option at other than its neutral value, is a one-line ``ConfigError``."""
+        values = drop_removed(where, values)
+        known = {f.name: f for f in dataclasses.fields(cls)}
+        for key in values:
+            if key not in known:
+                raise ConfigError(f"{where}.{key}: unknown key; allowed: {', '.join(known)}")
+        kinds = {"obs_shape": int, "channels": int, "window": int, "cells": int, "high": float, "hidden": int,
+                 "frame_channels": int}
+        out = {}
+        for key, value in values.items():
+            kind = kinds.get(key, bool)
+            if value is None:
+                out[key] = None
+            elif isinstance(value, list | tuple):
+                out[key] = tuple(kind(v) for v in value)
+            else:
+                out[key] = kind(value)
+        return cls(**out)
+
+
 class DuelingQNetwork(nn.Module):
-    """uint8 observations -> Q-values of the four actions.
+    """uint8 observations -> Q-values of the four actions (or 16, ``answers_leader``), as ``spec`` says
+    (``NetworkSpec``)."""
 
-    ``window`` (rows above, rows below, columns either side of the leader, in entries of the
-    observation): look through a ``LeaderWindow`` first; None: the whole observation as it is.
-    ``frame_channels``: channels of one frame of the stack (3 for screens, 4 for grids).
-    ``cells`` (board height, width), screens only: read one pixel per cell first (``ScreenCells``);
-    ``window`` is then in cells, and the encoder's first layer reads every cell.
-    ``forecast``: add the planes of an ``ObstacleForecast`` to what the encoder reads (grids, or screens
-    read per cell, of two frames or more). ``answers_leader``: 16 Q-values, one per (leader's move, own
-    move), row by row, instead of 4. ``safety``: a second head beside the dueling one, 16 logits of whether
-    each joint move (leader's move, follower's move, row by row) is safe (``safety_logits``,
-    ``train.safety_horizon``). ``safety_encoder``: that head reads an encoder of its own, a copy of the
-    layers the Q-values read, instead of their features (``train.safety_encoder``)."""
-
-    def __init__(self, obs_shape: tuple[int, int, int], high: float = 255.0, hidden: int = 128,
-                 channels: tuple[int, int, int] = (16, 32, 32), window: tuple[int, int, int] | None = None,
-                 frame_channels: int | None = None, cells: tuple[int, int] | None = None, forecast: bool = False,
-                 answers_leader: bool = False, safety: bool = False, safety_encoder: bool = False):
+    def __init__(self, spec: NetworkSpec):
         super().__init__()
+        self.spec = spec
+        obs_shape, high, hidden, channels = spec.obs_shape, spec.high, spec.hidden, spec.channels
+        window, frame_channels, cells, forecast = spec.window, spec.frame_channels, spec.cells, spec.forecast
+        answers_leader, safety, safety_encoder = spec.answers_leader, spec.safety, spec.safety_encoder
         self.obs_shape = tuple(obs_shape)
         screens = min(obs_shape[:2]) >= 64
         frame_channels = frame_channels or (3 if screens else 4)

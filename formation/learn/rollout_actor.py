@@ -25,27 +25,7 @@ from formation.learn.qnet import q_values_of, team_q_values
 from formation.learn.rollout import GameRollout, concatenate
 from formation.learn.shaping import Potential
 from formation.learn.teacher import Teacher, safety_labels
-
-
-def spaces_of(run: RunConfig) -> tuple[gym.spaces.Box, gym.spaces.Discrete]:
-    from formation.game import BatchedGame, Observer
-
-    observer = Observer(BatchedGame(run.game, batch_size=1))
-    return gym.spaces.Box(0, observer.high, observer.shape, np.uint8), gym.spaces.Discrete(4)
-
-
-def module_of_agent(run: RunConfig) -> list[str]:
-    """The module (policy) id of each agent, leader first."""
-    names = run.game.agent_names
-    if run.train.followers_share_policy:
-        return ["leader"] + ["follower"] * run.game.n_followers
-    return names
-
-
-def answers_leader(run: RunConfig, module: str) -> bool:
-    """Whether ``module``'s network answers the leader (``train.follower_answers_leader``): every
-    module but the leader's."""
-    return run.train.follower_answers_leader and module != module_of_agent(run)[0]
+from formation.learn.team import module_of_agent, spaces_of
 
 
 def epsilon_at(env_steps: int, train: TrainSettings) -> float:

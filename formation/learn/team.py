@@ -1,0 +1,59 @@
+"""The team as training builds it: each agent's module, the spaces every agent sees and acts in, and each
+module's network (``NetworkSpec``), from the run's config. No Ray: the RLlib modules, the rollout actors and
+``formation.policy`` all read these."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+
+from formation.game.render import GRID_PLANES
+from formation.learn.config import RunConfig
+from formation.learn.qnet import NetworkSpec
+
+
+def spaces_of(run: RunConfig) -> tuple[gym.spaces.Box, gym.spaces.Discrete]:
+    from formation.game import BatchedGame, Observer
+
+    observer = Observer(BatchedGame(run.game, batch_size=1))
+    return gym.spaces.Box(0, observer.high, observer.shape, np.uint8), gym.spaces.Discrete(4)
+
+
+def module_of_agent(run: RunConfig) -> list[str]:
+    """The module (policy) id of each agent, leader first."""
+    if run.train.followers_share_policy:
+        return ["leader"] + ["follower"] * run.game.n_followers
+    return run.game.agent_names
+
+
+def answers_leader(run: RunConfig, module: str) -> bool:
+    """Whether ``module``'s network answers the leader (``train.follower_answers_leader``): every
+    module but the leader's."""
+    return run.train.follower_answers_leader and module != module_of_agent(run)[0]
+
+
+def network_specs(run: RunConfig) -> dict[str, NetworkSpec]:
+    """Each module's network. ``train.leader_window`` (in cells) becomes the network's ``window`` (in entries of
+    what it reads: cells of a grid or of a screen read per cell, pixels of a screen) and ``frame_channels``;
+    ``train.screen_cells`` becomes ``cells``, the board's height and width."""
+    t, game = run.train, run.game
+    obs_space, _ = spaces_of(run)
+    shape = tuple(int(v) for v in obs_space.shape)
+    per_cell = game.obs_type == "pixels" and t.screen_cells
+    window, frame_channels = t.leader_window, None
+    if window is not None:
+        frame_channels = len(GRID_PLANES) if game.obs_type == "grid" else 3
+        if game.obs_type == "pixels" and not per_cell:
+            up, down, side = window
+            rows, cols = shape[0] / game.height, shape[1] / game.width  # pixels per cell
+            # the leader's block of pixels starts at its top-left pixel: the window reaches one cell further down
+            # and right
+            window = (math.ceil(up * rows), math.ceil((down + 1) * rows), math.ceil((side + 1) * cols))
+    return {m: NetworkSpec(obs_shape=shape, high=float(obs_space.high.max()), hidden=t.hidden, channels=t.channels,
+                           window=window, frame_channels=frame_channels,
+                           cells=(game.height, game.width) if per_cell else None, forecast=t.obstacle_forecast,
+                           answers_leader=answers_leader(run, m), safety=t.safety_head,
+                           safety_encoder=t.safety_encoder)
+            for m in sorted(set(module_of_agent(run)))}
