@@ -3,13 +3,22 @@
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 from pathlib import Path
 from typing import Any
 
 from formation.config import ConfigError, GameConfig, RunFailed
 from formation.learn.config import VETO_FALLBACKS, yaml_value
+from formation.storage import (
+    check_new_folder,
+    check_outside,
+    check_writable,
+    is_uri,
+    local_run_folder,
+    write_text_whole,
+    writing_folder,
+    writing_into,
+)
 
 CHECKPOINT_HELP = "a run folder (or its storage URI), its checkpoint/ folder, or a `formation export` folder"
 
@@ -33,6 +42,7 @@ def cmd_show(args: argparse.Namespace) -> int:
 
     overrides = parse_overrides(args.set)
     config = GameConfig.from_setting(args.setting, **overrides)
+    out = _picture_folder(args.out)
     frames_per_episode = []
     for seed in range(args.seed, args.seed + args.episodes):
         env = FormationParallelEnv(config)
@@ -50,15 +60,27 @@ def cmd_show(args: argparse.Namespace) -> int:
             ok = info["leader"]["success"]
             print(f"seed {seed}: planner path of {len(path)} steps, replayed: {'success' if ok else 'FAILED'}")
         frames_per_episode.append(frames)
-    out = write_episodes_gif(Path(args.out) / f"setting{args.setting}_planner.gif", frames_per_episode)
-    print(f"wrote {out}")
+    name = f"setting{args.setting}_planner.gif"
+    with writing_into(out) as folder:  # a GIF of the same name, drawn before, is replaced whole
+        write_episodes_gif(folder / name, frames_per_episode)
+    print(f"wrote {out / name}")
     return 0
+
+
+def _picture_folder(given: str) -> Path:
+    """``--out`` of the commands that draw: a folder, new or not, that can be written."""
+    out = check_writable(given, "--out")
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out: {given!r} is a file; allowed: a folder (new, or one to draw into)")
+    return out
 
 
 def cmd_train(args: argparse.Namespace) -> int:
     """Train from a config; checkpoints and metrics go to --out."""
     from formation.train import train
 
+    if not args.resume and (args.out or args.config) and not is_uri(args.out or ""):
+        _check_new_run_folder(Path(args.out) if args.out else Path("runs") / Path(args.config).stem)
     try:
         train(args.config, args.out, resume=args.resume, overrides=parse_overrides(args.set))
     except KeyboardInterrupt:
@@ -66,17 +88,41 @@ def cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_new_run_folder(out: Path) -> None:
+    """A new run goes into a new or empty folder. One that holds a checkpoint is ``formation.train``'s
+    to refuse (it says to resume); one that holds anything else is refused here."""
+    if out.is_dir() and any(p.name.startswith("checkpoint") for p in out.iterdir()):
+        check_writable(out, "--out")
+    else:
+        check_new_folder(out, "--out")
+
+
+def _source(path: str | Path) -> str | Path:
+    """The folder a checkpoint argument reads from: an export's, or a run's (also for its checkpoint/)."""
+    if is_uri(path):
+        return path
+    path = Path(path)
+    if path.name == "checkpoint" and (path.parent / "config.yaml").is_file():
+        return path.parent
+    return path
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     """Write a checkpoint's networks and a policy card that torch alone can load."""
     from formation.policy import CARD, export, load
-    from formation.storage import local_run_folder
 
-    policy = load(local_run_folder(args.checkpoint))
     if args.veto_threshold is not None:
-        policy = policy.with_veto_threshold(_veto_threshold(args.veto_threshold))
+        _veto_threshold(args.veto_threshold)
+    out = check_new_folder(args.dir, "dir", source=_source(args.checkpoint))
+    path = local_run_folder(args.checkpoint)
+    check_outside(out, _source(path), "dir", given=args.checkpoint)
+    policy = load(path)
+    if args.veto_threshold is not None:
+        policy = policy.with_veto_threshold(args.veto_threshold)
     if args.veto_fallback is not None:
         policy = policy.with_veto_fallback(args.veto_fallback)
-    out = export(policy, args.dir, half=args.half)
+    with writing_folder(out) as folder:  # the export appears whole or not at all
+        export(policy, folder, half=args.half)
     print(f"exported {', '.join(sorted(policy.networks))} from {args.checkpoint} to {out} ({CARD})")
     return 0
 
@@ -86,17 +132,14 @@ def cmd_refit(args: argparse.Namespace) -> int:
     from formation.learn.config import RunConfig, section_of
     from formation.learn.safety_refit import check_refittable, refit
     from formation.policy import CARD, export, load
-    from formation.storage import local_run_folder
 
     overrides = parse_overrides(args.set)
     for key in overrides:
         if key.partition(".")[0] != "refit":
             raise ConfigError(f"--set {key}: refit takes refit.* keys only, e.g. --set refit.rounds=3")
-    out = Path(args.dir)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ConfigError(f"refit: {str(out)!r} exists and is not an empty folder; give a new folder "
-                          f"(nothing is overwritten)")
+    out = check_new_folder(args.dir, "dir", source=_source(args.checkpoint))
     path = local_run_folder(args.checkpoint)
+    check_outside(out, _source(path), "dir", given=args.checkpoint)
     policy = load(path)
     check_refittable(policy, args.checkpoint)
     saved = path / "config.yaml"  # a run folder's refit section; an export's: the defaults
@@ -108,10 +151,8 @@ def cmd_refit(args: argparse.Namespace) -> int:
     earlier = policy.refit_report  # a refit of a refitted team keeps the earlier report on its card
     report = refit(policy, settings, say=lambda line: print(line, flush=True))
     policy.refit_report = {**report, "earlier": earlier} if earlier else report
-    partial = out.with_name(out.name + ".partial")  # the export appears whole or not at all
-    shutil.rmtree(partial, ignore_errors=True)
-    export(policy, partial, half=args.half)
-    partial.rename(out)
+    with writing_folder(out) as folder:  # the export appears whole or not at all
+        export(policy, folder, half=args.half)
     print(f"refitted in {report['seconds'] / 60:.1f} min; wrote {out} ({CARD})")
     return 0
 
@@ -130,7 +171,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     from formation.evaluate import evaluate_policy, format_report
     from formation.policy import load
-    from formation.storage import local_run_folder
 
     for name in ("episodes", "workers"):
         value = getattr(args, name)
@@ -140,6 +180,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise ConfigError(f"--seed: {args.seed} is not allowed; allowed: an integer >= 0")
     if args.shield < 0:
         raise ConfigError(f"--shield: {args.shield} is not allowed; allowed: an integer >= 0 (steps ahead; 0: none)")
+    if args.json:
+        _check_report_path(args.json)
     policy = load(local_run_folder(args.checkpoint)).shielded(args.shield)
     if args.veto_threshold is not None:
         policy = policy.with_veto_threshold(_veto_threshold(args.veto_threshold))
@@ -178,36 +220,77 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
              if policy.learned_veto else ""))
     print(format_report(report))
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(report, indent=2) + "\n")
+        write_text_whole(args.json, json.dumps(report, indent=2) + "\n")
         print(f"wrote {args.json}")
     return 0
+
+
+def _check_report_path(given: str) -> None:
+    """``--json``: a new file, or an earlier evaluation report to replace (as docs/RESULTS.md's commands
+    do); never a folder or any other file."""
+    import json
+
+    path = check_writable(given, "--json")
+    if not path.exists():
+        return
+    if path.is_dir():
+        raise ConfigError(f"--json: {given!r} is a folder; allowed: a file path, e.g. {given.rstrip('/')}/eval.json")
+    try:
+        earlier = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        earlier = None
+    if not (isinstance(earlier, dict) and {"checkpoint", "episodes", "success"} <= earlier.keys()):
+        raise ConfigError(f"--json: {given!r} exists and is not an evaluation report; allowed: a new file or an "
+                          f"earlier report (nothing else is overwritten)")
 
 
 def cmd_render(args: argparse.Namespace) -> int:
     """The paper's pictures of a trained policy: episodes.gif, paths.png, q_values.png, training.png."""
     from formation.pictures import render
     from formation.policy import load
-    from formation.storage import local_run_folder
 
     if args.episodes < 1:
         raise ConfigError(f"--episodes: {args.episodes} is not allowed; allowed: an integer >= 1")
     if args.seed is not None and args.seed < 0:
         raise ConfigError(f"--seed: {args.seed} is not allowed; allowed: an integer >= 0")
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"--out: {str(out)!r} exists and is not a folder")
+    if not is_uri(args.checkpoint):
+        check_outside(args.out, _source(args.checkpoint), "--out")
+    out = _picture_folder(args.out)
     path = local_run_folder(args.checkpoint)
+    check_outside(out, _source(path), "--out", given=args.checkpoint)
     policy = load(path)
     run_dir = path if (path / "config.yaml").is_file() else path.parent
     seed = policy.eval_settings["seed"] if args.seed is None else args.seed
-    for written in render(policy, out, episodes=args.episodes, seed=seed, metrics=run_dir / "metrics.jsonl"):
-        print(f"wrote {written}")
+    with writing_into(out) as folder:  # pictures of the same names, drawn before, are replaced whole
+        written = render(policy, folder, episodes=args.episodes, seed=seed, metrics=run_dir / "metrics.jsonl")
+    for picture in written:
+        print(f"wrote {out / picture.name}")
     return 0
 
 
+def version() -> str:
+    """The installed package's version; in a source tree that is not installed, ``formation.__version__``."""
+    from importlib.metadata import PackageNotFoundError
+    from importlib.metadata import version as installed
+
+    try:
+        return installed("formation")
+    except PackageNotFoundError:
+        import formation
+
+        return formation.__version__
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse's own messages, in one line (usage behind --help) like every other error here."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="formation", description=__doc__)
+    parser = _Parser(prog="formation", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"formation {version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     show = sub.add_parser("show", help="plan the best path with the clairvoyant planner and write a GIF")
@@ -292,6 +375,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("formation: interrupted", file=sys.stderr)
         return 130
+    except OSError as err:  # a disk that fills or a folder that goes away mid-way: nothing half-written stays
+        where = f"{str(err.filename)!r}: " if err.filename else ""
+        print(f"formation: error: {where}{err.strerror or err}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

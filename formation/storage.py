@@ -7,13 +7,22 @@ checkpoint goes up as ``checkpoint.writing``, is marked complete, and only then 
 and marked, and copying down takes the newest whole one. ``--resume``, ``formation evaluate``, ``export`` and
 ``render`` first copy a URI's run folder down. Copies go through ``pyarrow.fs``, which Ray itself
 uses for its storage; credentials come from the environment as usual for each cloud.
+
+Local outputs are never overwritten and never half-written: ``check_new_folder``, ``check_writable``
+and ``check_outside`` refuse, in one line and before any work, a folder that holds something, a path
+that cannot be written and an output inside its own source; ``writing_folder``, ``writing_into``
+and ``write_text_whole`` write beside the target and rename.
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
+import secrets
 import shutil
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 from formation.config import ConfigError
@@ -138,3 +147,107 @@ def local_run_folder(path: str | Path, what: str = "checkpoint") -> Path:
     if not is_uri(path):
         return Path(path)
     return RemoteRun(str(path), what=what).pull()
+
+
+# ---------------------------------------------------------------------- local outputs: nothing overwritten
+def _nearest_existing(path: Path) -> Path:
+    for folder in (path, *path.parents):
+        if folder.exists():
+            return folder
+    return Path(".")
+
+
+def check_writable(path: str | Path, what: str) -> Path:
+    """Fail in one line, before any work, when ``path`` (a local file or folder to be made) cannot be written."""
+    if is_uri(path):
+        raise ConfigError(f"{what}: {str(path)!r} is a storage URI; allowed: a local path (copy it up afterwards)")
+    path = Path(path)
+    folder = _nearest_existing(path.parent)
+    if not folder.is_dir():
+        raise ConfigError(f"{what}: cannot make {str(path)!r}: {str(folder)!r} is a file, not a folder")
+    for place in (folder, path) if path.is_dir() else (folder,):  # beside it, and into a folder that is there
+        try:  # os.access says yes to root on read-only or virtual file systems (/proc): try it
+            os.rmdir(tempfile.mkdtemp(prefix=".formation-probe-", dir=place))
+        except OSError as err:
+            raise ConfigError(f"{what}: cannot write in {str(place)!r} ({err.strerror or err})") from None
+    return path
+
+
+def check_new_folder(path: str | Path, what: str, source: str | Path | None = None) -> Path:
+    """``path`` must be a new (or empty) folder that can be made, outside ``source`` if given: what is
+    there is never overwritten."""
+    if source is not None and not is_uri(source):
+        check_outside(path, source, what)
+    path = check_writable(path, what)
+    if path.exists() and (not path.is_dir() or any(path.iterdir())):
+        kind = "a folder that is not empty" if path.is_dir() else "a file"
+        raise ConfigError(f"{what}: {str(path)!r} is {kind}; allowed: a new or empty folder (nothing is "
+                          f"overwritten)")
+    return path
+
+
+def check_outside(path: str | Path, source: str | Path, what: str, given: str | None = None) -> None:
+    """An output never goes onto, or into, the folder it is made from."""
+    inside, origin = Path(path).resolve(), Path(source).resolve()
+    if inside == origin:
+        raise ConfigError(f"{what}: {str(path)!r} is the folder it is made from; allowed: a folder outside it")
+    if origin in inside.parents:
+        raise ConfigError(f"{what}: {str(path)!r} is inside {given or str(source)!r}, the folder it is made from; "
+                          f"allowed: a folder outside it")
+
+
+def _temporary_beside(path: Path, inside: bool = False) -> Path:
+    folder = path if inside else path.parent
+    temporary = folder / f".{path.name or 'out'}.writing-{os.getpid()}-{secrets.token_hex(3)}"
+    temporary.mkdir()  # mkdir, unlike mkdtemp, keeps the usual permissions
+    return temporary
+
+
+@contextmanager
+def writing_folder(path: str | Path) -> Iterator[Path]:
+    """A fresh folder beside ``path`` to write into, renamed to ``path`` when the block ends well and
+    removed (with the parent folders it made) when it does not: ``path`` appears whole or not at all."""
+    path = Path(path).absolute()
+    made = [folder for folder in path.parents if not folder.exists()]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = _temporary_beside(path)
+    try:
+        yield temporary
+        os.rename(temporary, path)  # onto an empty folder, or nothing; never onto files
+    except BaseException:
+        shutil.rmtree(temporary, ignore_errors=True)
+        for folder in made:  # the deepest first
+            with suppress(OSError):
+                folder.rmdir()
+        raise
+
+
+@contextmanager
+def writing_into(path: str | Path) -> Iterator[Path]:
+    """A fresh folder to write files into; when the block ends well each file moves into ``path`` whole
+    (replacing one of the same name: a command's own earlier output), and ``path`` is made if new."""
+    path = Path(path).absolute()
+    if not path.exists():
+        with writing_folder(path) as temporary:
+            yield temporary
+        return
+    temporary = _temporary_beside(path, inside=True)
+    try:
+        yield temporary
+        for item in sorted(temporary.iterdir()):
+            os.replace(item, path / item.name)
+    finally:
+        shutil.rmtree(temporary, ignore_errors=True)
+
+
+def write_text_whole(path: str | Path, text: str) -> Path:
+    """Write ``text`` beside ``path`` and rename it there: a reader sees the old file or the new one, never half."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.writing-{os.getpid()}-{secrets.token_hex(3)}")
+    try:
+        temporary.write_text(text)
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+    return path

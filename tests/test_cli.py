@@ -1,4 +1,4 @@
-"""The ``formation`` command: the main job's GIF, and one-line errors for bad input."""
+"""The ``formation`` command: the main job's GIF, one-line errors for bad input, --version and python -m formation."""
 
 import subprocess
 import sys
@@ -36,3 +36,33 @@ def test_console_script_is_installed():
                           capture_output=True, text=True)
     assert done.returncode == 2
     assert done.stderr.strip() == "formation: error: setting: unknown setting 7; allowed: 1, 2, 3, 4"
+
+
+def test_version_and_python_dash_m_formation():
+    import re
+    from importlib.metadata import version
+    from pathlib import Path
+
+    import formation
+
+    pyproject = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
+    declared = re.search(r'^version = "(.+)"$', pyproject, re.MULTILINE).group(1)
+    assert formation.__version__ == declared == version("formation")
+    done = subprocess.run([sys.executable, "-m", "formation", "--version"], capture_output=True, text=True)
+    assert done.returncode == 0 and done.stdout.strip() == f"formation {formation.__version__}"
+    done = subprocess.run([sys.executable, "-m", "formation", "show", "--setting", "7"], capture_output=True, text=True)
+    assert done.returncode == 2
+    assert done.stderr.strip() == "formation: error: setting: unknown setting 7; allowed: 1, 2, 3, 4"
+
+
+def test_version_falls_back_to_the_source_tree_when_not_installed(monkeypatch):
+    import importlib.metadata
+
+    import formation
+    from formation import cli
+
+    def not_installed(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(importlib.metadata, "version", not_installed)
+    assert cli.version() == formation.__version__

@@ -113,3 +113,57 @@ def test_a_joined_cluster_gets_time_for_its_nodes_to_arrive(monkeypatch):
     assert 1.4 <= time.monotonic() - started < 5
     with pytest.raises(ConfigError, match="the Ray cluster has 1; lower num_rollout_actors"):
         check_resources(run, joined=False)  # a local Ray: no waiting
+
+
+def test_a_folder_is_written_whole_or_not_at_all(tmp_path):
+    from formation.storage import writing_folder
+
+    out = tmp_path / "made" / "on the way" / "export"
+    with pytest.raises(OSError), writing_folder(out) as folder:
+        (folder / "half.pt").write_bytes(b"half")
+        raise OSError("disk full")
+    assert list(tmp_path.iterdir()) == []  # nor the folders made on the way
+    with writing_folder(out) as folder:
+        (folder / "whole.pt").write_bytes(b"whole")
+    assert [p.name for p in out.parent.iterdir()] == ["export"] and (out / "whole.pt").read_bytes() == b"whole"
+    with pytest.raises(OSError), writing_folder(out) as folder:  # a folder that filled up meanwhile stays
+        (folder / "other.pt").write_bytes(b"other")
+    assert [p.name for p in out.iterdir()] == ["whole.pt"] and [p.name for p in out.parent.iterdir()] == ["export"]
+
+
+def test_files_written_into_a_folder_replace_their_own_names_only(tmp_path):
+    from formation.storage import write_text_whole, writing_into
+
+    (tmp_path / "keep.txt").write_text("mine")
+    (tmp_path / "episodes.gif").write_text("old")
+    with writing_into(tmp_path) as folder:
+        (folder / "episodes.gif").write_text("new")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["episodes.gif", "keep.txt"]
+    assert (tmp_path / "episodes.gif").read_text() == "new" and (tmp_path / "keep.txt").read_text() == "mine"
+    with pytest.raises(KeyboardInterrupt), writing_into(tmp_path / "new") as folder:
+        (folder / "episodes.gif").write_text("half")
+        raise KeyboardInterrupt
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["episodes.gif", "keep.txt"]
+    write_text_whole(tmp_path / "reports" / "r.json", "{}\n")
+    assert sorted(p.name for p in (tmp_path / "reports").iterdir()) == ["r.json"]
+
+
+def test_outputs_are_checked_in_one_line_before_any_work(tmp_path):
+    from formation.storage import check_new_folder, check_outside, check_writable
+
+    (tmp_path / "file").write_text("")
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "a").write_text("")
+    (tmp_path / "link").symlink_to(tmp_path / "full")
+    for call, message in [(lambda: check_writable(tmp_path / "file" / "x", "--out"), "--out: cannot make .* is a file"),
+                          (lambda: check_writable("/proc/formation/x", "--out"), "--out: cannot write in '/proc'"),
+                          (lambda: check_writable("gs://b/x", "dir"), "dir: 'gs://b/x' is a storage URI"),
+                          (lambda: check_new_folder(tmp_path / "full", "dir"), "dir: .* is a folder that is not empty"),
+                          (lambda: check_new_folder(tmp_path / "file", "dir"), "dir: .* is a file; allowed"),
+                          (lambda: check_outside(tmp_path / "link" / "b", tmp_path / "full", "dir"), "is inside"),
+                          (lambda: check_outside(tmp_path / "link", tmp_path / "full", "dir"), "is the folder")]:
+        with pytest.raises(ConfigError, match=message) as err:
+            call()
+        assert "\n" not in str(err.value)
+    assert check_new_folder(tmp_path / "new" / "one", "dir", source=tmp_path / "full") == tmp_path / "new" / "one"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "full", "link"]  # the checks leave nothing
