@@ -24,9 +24,10 @@ from concurrent.futures import ThreadPoolExecutor
 import torch
 
 from formation.game import BatchedGame, Observer
-from formation.learn.config import RunConfig
-from formation.learn.qnet import NetworkSpec, double_q_target
-from formation.learn.team import network_specs
+from formation.recipe.config import RunConfig
+from formation.recipe.loss import double_q_target
+from formation.recipe.qnet import NetworkSpec
+from formation.recipe.team import network_specs
 
 
 def ms_per_update(spec: NetworkSpec, batch: int, threads: int, updates: int, device: torch.device) -> float:

@@ -1,4 +1,4 @@
-"""Cost of a safety head's labels (``train.safety_horizon``, ``formation.learn.teacher.safety_labels``), which a
+"""Cost of a safety head's labels (``train.safety_horizon``, ``formation.recipe.teacher.safety_labels``), which a
 rollout actor computes for its 16 games on every step.
 
 Run: ``.venv/bin/python benchmarks/safety_labels.py [n_steps]`` (default 20 steps of 16 games per setting).
@@ -16,8 +16,8 @@ import time
 import numpy as np
 
 from formation.config import GameConfig
-from formation.learn.rollout import GameRollout
-from formation.learn.teacher import safety_labels
+from formation.recipe.rollout import GameRollout
+from formation.recipe.teacher import safety_labels
 
 BATCH = 16  # games per rollout actor in configs/setting*.yaml
 HORIZONS = (4, 8)

@@ -1,4 +1,4 @@
-"""Speed of DAgger's teacher (``formation.learn.teacher.Teacher``), the rollout actors' largest cost.
+"""Speed of DAgger's teacher (``formation.recipe.teacher.Teacher``), the rollout actors' largest cost.
 
 Run: ``.venv/bin/python benchmarks/teacher_labels.py [n_games]`` (default 32 per setting).
 
@@ -19,8 +19,8 @@ import numpy as np
 
 from formation.config import GameConfig
 from formation.game import BatchedGame
-from formation.learn.teacher import Teacher
 from formation.planner import shortest_path
+from formation.recipe.teacher import Teacher
 
 BATCH = 16  # games per rollout actor in configs/setting*.yaml
 
@@ -39,7 +39,7 @@ def states(config: GameConfig, n_games: int) -> tuple[list, list]:
 
 
 def ms_per_label(config: GameConfig, batch: list, first_step: bool, batched: bool) -> tuple[float, list]:
-    teacher = Teacher(config, slack=6, order="lockstep", robust_first_step=True)
+    teacher = Teacher(config, slack=6, robust_first_step=True)
     start = time.perf_counter()
     if batched:
         labels = []

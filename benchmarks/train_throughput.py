@@ -26,8 +26,8 @@ import ray  # noqa: E402
 
 from formation.cli import parse_overrides  # noqa: E402
 from formation.config import ConfigError  # noqa: E402
-from formation.learn.algorithm import build_algorithm_config  # noqa: E402
-from formation.learn.config import RunConfig  # noqa: E402
+from formation.recipe.config import RunConfig  # noqa: E402
+from formation.rllib.algorithm import build_algorithm_config  # noqa: E402
 
 BASE = {"game": {"setting": 1, "obs_type": "pixels", "frame_stack": 4},
         # the paper's reward and plain epsilon-greedy on both paths: RLlib's stock DQN has no teacher

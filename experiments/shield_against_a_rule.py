@@ -15,8 +15,8 @@ import numpy as np
 from _common import one_thread, policy_parser
 
 from formation.evaluate import play_greedy
-from formation.learn.qnet import N_ACTIONS
 from formation.policy import load
+from formation.recipe.qnet import N_ACTIONS
 from formation.shield import FrameReader, Shield, shielded_moves
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from formation.config import ConfigError, GameConfig, RunFailed
-from formation.learn.config import VETO_FALLBACKS, yaml_value
+from formation.recipe.config import VETO_FALLBACKS, yaml_value
 from formation.storage import (
     check_new_folder,
     check_outside,
@@ -129,9 +129,9 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_refit(args: argparse.Namespace) -> int:
     """Refit a trained team's safety heads on fresh states of its own play; write the team as an export."""
-    from formation.learn.config import RunConfig, section_of
-    from formation.learn.safety_refit import check_refittable, refit
     from formation.policy import CARD, export, load
+    from formation.recipe.config import RunConfig, section_of
+    from formation.recipe.safety_refit import check_refittable, refit
 
     overrides = parse_overrides(args.set)
     for key in overrides:

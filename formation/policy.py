@@ -31,8 +31,8 @@ import numpy as np
 import torch
 
 from formation.config import ConfigError, GameConfig
-from formation.learn.config import VETO_FALLBACKS
-from formation.learn.qnet import N_ACTIONS, DuelingQNetwork, NetworkSpec, outputs_of, team_q_values
+from formation.recipe.config import VETO_FALLBACKS
+from formation.recipe.qnet import N_ACTIONS, DuelingQNetwork, NetworkSpec, outputs_of, team_q_values
 from formation.shield import Shield, shielded_moves
 
 FORMAT_VERSION = 1
@@ -240,8 +240,8 @@ def load(path: str | Path) -> Policy:
 
 # ---------------------------------------------------------------------- run folders
 def _load_run(run_dir: Path) -> Policy:
-    from formation.learn.config import RunConfig
-    from formation.learn.team import module_of_agent, network_specs
+    from formation.recipe.config import RunConfig
+    from formation.recipe.team import module_of_agent, network_specs
 
     try:
         run = RunConfig.load_saved(run_dir / "config.yaml")

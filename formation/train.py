@@ -24,8 +24,8 @@ from typing import Any
 import yaml
 
 from formation.config import ConfigError, RunFailed
-from formation.learn.config import RunConfig
 from formation.pictures import write_episodes_gif
+from formation.recipe.config import RunConfig
 from formation.storage import RemoteRun, is_uri
 
 CHECKPOINT = "checkpoint"
@@ -259,7 +259,7 @@ def _start(run: RunConfig, out_dir: Path, resume: bool):
     """Start (or join) Ray and build the algorithm, fresh or from the run's checkpoint."""
     start_ray(run)
     check_resources(run, joined=bool(os.environ.get("RAY_ADDRESS")))
-    from formation.learn.algorithm import build_algorithm_config
+    from formation.rllib.algorithm import build_algorithm_config
 
     algo = build_algorithm_config(run).build_algo()
     if resume:  # built from today's config (its resumable overrides), then the checkpoint's state

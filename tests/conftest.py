@@ -117,9 +117,9 @@ def cluster():
 def rollout_actor():
     """Makes a rollout actor (no Ray cluster needed) of the smoke config with the given overrides."""
     pytest.importorskip("ray")
-    from formation.learn.algorithm import build_algorithm_config
-    from formation.learn.config import RunConfig
-    from formation.learn.rollout_actor import RolloutActor
+    from formation.recipe.config import RunConfig
+    from formation.rllib.algorithm import build_algorithm_config
+    from formation.rllib.rollout_actor import RolloutActor
 
     def make(overrides: dict) -> RolloutActor:
         return RolloutActor(config=build_algorithm_config(RunConfig.load("configs/smoke.yaml", overrides)))

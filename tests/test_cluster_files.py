@@ -11,7 +11,7 @@ from pathlib import Path
 import yaml
 
 from formation.cli import build_parser, parse_overrides
-from formation.learn.config import RunConfig
+from formation.recipe.config import RunConfig
 from formation.storage import is_uri
 
 REPO = Path(__file__).resolve().parent.parent

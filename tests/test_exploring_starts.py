@@ -6,8 +6,8 @@ import pytest
 
 from formation.config import ConfigError, GameConfig
 from formation.game import BatchedGame, Observer
-from formation.learn.config import RunConfig
-from formation.learn.rollout import GameRollout, exploring_start
+from formation.recipe.config import RunConfig
+from formation.recipe.rollout import GameRollout, exploring_start
 
 
 def spec_start(config):

@@ -6,7 +6,7 @@ import torch
 
 from formation.env import parallel_env
 from formation.game import BatchedGame
-from formation.learn.qnet import FORECAST_LAGS, NetworkSpec, ObstacleForecast, ScreenCells
+from formation.recipe.qnet import FORECAST_LAGS, NetworkSpec, ObstacleForecast, ScreenCells
 
 
 def true_danger(env, leader_row: int, lags=FORECAST_LAGS) -> np.ndarray:

@@ -4,7 +4,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from formation.learn.learner import ACCEPTED, DISCOUNTS, LABELS, RETURNS, module_batches
+from formation.recipe.loss import ACCEPTED, DISCOUNTS, LABELS, RETURNS, module_batches
 
 
 def test_followers_sharing_a_policy_each_contribute_their_own_rows():
@@ -55,13 +55,13 @@ def margin_loss(module: str, q, batch: dict, **config):
 
     import torch
 
-    from formation.learn.learner import FormationLearner
+    from formation.rllib.learner import FormationLearner
 
     n, actions = q.shape
     fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(n, actions), "qf_target_next_preds": torch.zeros(n, actions)}
     learner = FormationLearner.__new__(FormationLearner)
     learner._priority, learner._stats = {}, {}
-    config = SimpleNamespace(**config)
+    config = SimpleNamespace(**{"safety_weight": 1.0, **config})
     loss = learner.compute_loss_for_module(module_id=module, config=config, batch=batch, fwd_out=fwd)
     return loss, learner._priority[module]
 
@@ -90,8 +90,7 @@ def test_the_leaders_margin_with_accepted_moves_compares_with_the_best_accepted_
 
     import torch
 
-    from formation.learn.learner import WEIGHTS
-    from formation.learn.qnet import large_margin, large_margin_sets
+    from formation.recipe.loss import WEIGHTS, large_margin, large_margin_sets
 
     q = torch.tensor([[1.0, 0.0, 3.0, -2.0], [0.0, 0.0, 0.0, 0.0]])
     accepted = torch.tensor([[True, False, True, False], [False] * 4])
@@ -110,8 +109,7 @@ def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_
 
     import torch
 
-    from formation.learn.learner import WEIGHTS
-    from formation.learn.qnet import large_margin
+    from formation.recipe.loss import WEIGHTS, large_margin
 
     q = torch.zeros(1, 16)
     q[0, 4 * 2 + 1] = 3.0  # in the row of leader move 2, own move 1 stands highest
@@ -134,8 +132,7 @@ def test_the_margin_of_every_labelled_row_counts_once_and_unlabelled_steps_not_a
 
     import torch
 
-    from formation.learn.learner import WEIGHTS
-    from formation.learn.qnet import large_margin
+    from formation.recipe.loss import WEIGHTS, large_margin
 
     q = torch.randn(3, 16, generator=torch.Generator().manual_seed(0))
     labels = torch.tensor([[1, 0, -1, 3], [-1, -1, -1, -1], [-1, 2, -1, -1]])
@@ -159,10 +156,10 @@ def test_threaded_module_updates_equal_rllibs_serial_update(monkeypatch):
     import torch
     from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 
-    from formation.learn.algorithm import build_algorithm_config
-    from formation.learn.config import RunConfig
-    from formation.learn.qnet import DuelingQNetwork
-    from formation.learn.team import module_of_agent, spaces_of
+    from formation.recipe.config import RunConfig
+    from formation.recipe.qnet import DuelingQNetwork
+    from formation.recipe.team import module_of_agent, spaces_of
+    from formation.rllib.algorithm import build_algorithm_config
 
     run = RunConfig.load("configs/smoke.yaml")
     config = build_algorithm_config(run)
@@ -209,8 +206,8 @@ def test_threaded_module_updates_equal_rllibs_serial_update(monkeypatch):
 def test_a_safety_head_adds_its_loss_but_not_its_wrong_verdicts_to_the_priority():
     import torch
 
-    from formation.learn.learner import SAFE, WEIGHTS
-    from formation.learn.module import SAFETY_LOGITS
+    from formation.recipe.loss import SAFE, WEIGHTS
+    from formation.rllib.module import SAFETY_LOGITS
 
     q = torch.zeros(2, 4)
     safe = torch.zeros(2, 16, dtype=torch.bool)
@@ -222,13 +219,13 @@ def test_a_safety_head_adds_its_loss_but_not_its_wrong_verdicts_to_the_priority(
              WEIGHTS: torch.ones(2)}
 
     def loss_and_priority():
-        from formation.learn.learner import FormationLearner
+        from formation.rllib.learner import FormationLearner
 
         fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(2, 4), "qf_target_next_preds": torch.zeros(2, 4),
                SAFETY_LOGITS: logits}
         learner = FormationLearner.__new__(FormationLearner)
         learner._priority, learner._stats = {}, {}
-        config = SimpleNamespace(margin=0.0, safety_weight=1.0)
+        config = SimpleNamespace(margin=0.0, margin_gap=5.0, safety_weight=1.0)
         loss = learner.compute_loss_for_module(module_id="leader", config=config, batch=batch, fwd_out=fwd)
         return loss, learner._priority["leader"], learner._stats["leader"]
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from formation.evaluate import play_greedy
-from formation.learn.config import RunConfig
+from formation.recipe.config import RunConfig
 
 SMALL = "configs/small.yaml"
 pytest.importorskip("ray")

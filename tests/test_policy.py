@@ -12,8 +12,8 @@ import pytest
 from formation.cli import main
 from formation.env import parallel_env
 from formation.evaluate import compare_with_planner, planner_paths, planner_reference, play_greedy, replay_paths
-from formation.learn.config import RunConfig
 from formation.policy import RL_MODULES, PolicyError, load
+from formation.recipe.config import RunConfig
 
 SMOKE = "configs/smoke.yaml"
 
@@ -195,8 +195,8 @@ def test_a_truncated_checkpoint_module_or_a_foreign_card_is_one_line(run_dir, ex
 def test_an_export_of_networks_that_read_screens_per_cell_loads_them_alike(tmp_path, forecast):
     import torch
 
-    from formation.learn.team import module_of_agent, network_specs
     from formation.policy import Policy, export
+    from formation.recipe.team import module_of_agent, network_specs
 
     run = RunConfig.from_dict({"game": {"setting": 3, "obs_type": "pixels", "frame_stack": 2},
                                "train": {"screen_cells": True, "channels": [4, 8, 8], "hidden": 16,
@@ -223,8 +223,8 @@ def test_an_export_of_networks_that_read_screens_per_cell_loads_them_alike(tmp_p
 def test_a_follower_that_answers_the_leader_acts_on_the_leaders_move_after_export(tmp_path):
     import torch
 
-    from formation.learn.team import module_of_agent, network_specs
     from formation.policy import Policy, export
+    from formation.recipe.team import module_of_agent, network_specs
 
     run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "grid", "frame_stack": 2},
                                "train": {"channels": [4, 8, 8], "hidden": 16, "follower_answers_leader": True}})

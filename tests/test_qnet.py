@@ -5,15 +5,8 @@ import pytest
 import torch
 
 from formation.config import ConfigError
-from formation.learn.qnet import (
-    DuelingQNetwork,
-    LeaderWindow,
-    NetworkSpec,
-    double_q_target,
-    dueling,
-    large_margin,
-    large_margin_sets,
-)
+from formation.recipe.loss import double_q_target, large_margin, large_margin_sets
+from formation.recipe.qnet import DuelingQNetwork, LeaderWindow, NetworkSpec, dueling
 
 
 def test_dueling_aggregation_by_hand():
@@ -99,8 +92,8 @@ def test_leader_window_moves_the_leader_to_a_fixed_place_on_grids():
 def test_leader_window_finds_the_leader_on_rendered_screens():
     from formation.config import GameConfig
     from formation.game import BatchedGame, Observer
-    from formation.learn.config import RunConfig
-    from formation.learn.team import network_specs
+    from formation.recipe.config import RunConfig
+    from formation.recipe.team import network_specs
 
     run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "pixels", "frame_stack": 2},
                                "train": {"leader_window": [2, 1, 3], "screen_cells": False,
@@ -136,7 +129,7 @@ def test_screen_cells_reads_every_cell_of_rendered_screens_without_loss():
     from formation.config import GameConfig
     from formation.game import BatchedGame
     from formation.game.render import GridRenderer, ScreenRenderer
-    from formation.learn.qnet import ScreenCells
+    from formation.recipe.qnet import ScreenCells
 
     for setting in (1, 3):  # 3.36 and 1.68 pixels a cell
         cfg = GameConfig.from_setting(setting)
@@ -155,8 +148,8 @@ def test_screen_cells_reads_every_cell_of_rendered_screens_without_loss():
 def test_a_screen_read_per_cell_has_its_window_in_cells_with_the_leader_at_the_fixed_place():
     from formation.config import GameConfig
     from formation.game import BatchedGame, Observer
-    from formation.learn.config import RunConfig
-    from formation.learn.team import network_specs
+    from formation.recipe.config import RunConfig
+    from formation.recipe.team import network_specs
 
     run = RunConfig.from_dict({"game": {"setting": 3, "obs_type": "pixels", "frame_stack": 2},
                                "train": {"leader_window": [2, 1, 3], "screen_cells": True}})
@@ -190,7 +183,7 @@ def test_a_screen_read_per_cell_has_its_window_in_cells_with_the_leader_at_the_f
 
 
 def test_a_follower_that_answers_the_leader_reads_the_row_of_the_leaders_move():
-    from formation.learn.qnet import team_q_values
+    from formation.recipe.qnet import team_q_values
 
     rng = np.random.default_rng(0)
     leader, follower = rng.normal(size=(5, 4)), rng.normal(size=(5, 16))
@@ -211,7 +204,7 @@ def test_a_follower_that_answers_the_leader_reads_the_row_of_the_leaders_move():
 
 
 def test_networks_that_prepare_alike_share_one_preparation_and_keep_their_q_values(monkeypatch):
-    from formation.learn.qnet import q_values_of
+    from formation.recipe.qnet import q_values_of
 
     torch.manual_seed(0)
     shape = (84, 84, 12)
@@ -233,9 +226,9 @@ def test_networks_that_prepare_alike_share_one_preparation_and_keep_their_q_valu
 def test_one_spec_builds_the_network_the_rllib_module_and_the_card():
     """``NetworkSpec`` is the one spelling of a network: training's RLlib module is built from it, the card
     stores it, and a card of 0.1 (with ``row_scan: 0``) reads back the same spec."""
-    from formation.learn.algorithm import module_specs
-    from formation.learn.config import RunConfig
-    from formation.learn.team import network_specs
+    from formation.recipe.config import RunConfig
+    from formation.recipe.team import network_specs
+    from formation.rllib.algorithm import module_specs
 
     run = RunConfig.load("configs/smoke.yaml", {"train.safety_horizon": 2})
     specs = network_specs(run)

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from formation.config import GameConfig
-from formation.learn.replay import Chunk, FrameReplay, SumTree
-from formation.learn.rollout import GameRollout, concatenate
+from formation.recipe.replay import Chunk, FrameReplay, SumTree
+from formation.recipe.rollout import GameRollout, concatenate
 
 
 def play(config, batch, steps, capacity, seed=0, n_agents=2):

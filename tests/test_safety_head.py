@@ -13,11 +13,6 @@ import torch
 
 from formation.config import ConfigError, GameConfig
 from formation.game import BatchedGame, Observer
-from formation.learn.config import RunConfig
-from formation.learn.learner import SAFE, module_batches
-from formation.learn.qnet import NetworkSpec, outputs_of
-from formation.learn.replay import FrameReplay
-from formation.learn.rollout import GameRollout, concatenate
 from formation.planner import (
     lower_bound,
     shortest_first_moves_many,
@@ -26,6 +21,11 @@ from formation.planner import (
     viable_first_moves_many,
 )
 from formation.policy import Policy, export, greedy_within, load
+from formation.recipe.config import RunConfig
+from formation.recipe.loss import SAFE, module_batches
+from formation.recipe.qnet import NetworkSpec, outputs_of
+from formation.recipe.replay import FrameReplay
+from formation.recipe.rollout import GameRollout, concatenate
 
 SMOKE = "configs/smoke.yaml"
 JOINTS = list(itertools.product(range(4), repeat=2))
@@ -127,8 +127,8 @@ def test_a_head_with_an_encoder_of_its_own_leaves_the_q_values_and_their_layers_
 
 
 def test_training_and_exports_build_the_head_with_its_encoder(tmp_path):
-    from formation.learn.algorithm import module_specs
-    from formation.learn.team import module_of_agent, network_specs
+    from formation.recipe.team import module_of_agent, network_specs
+    from formation.rllib.algorithm import module_specs
 
     run = RunConfig.load(SMOKE, {"train.safety_horizon": 2, "train.safety_encoder": True})
     specs, agent_modules = network_specs(run), module_of_agent(run)

@@ -13,11 +13,11 @@ import torch
 from formation.cli import main
 from formation.config import ConfigError, GameConfig
 from formation.game import BatchedGame, Observer
-from formation.learn.config import RefitSettings, RunConfig
-from formation.learn.qnet import NetworkSpec
-from formation.learn.safety_refit import StateBank, label_states, refit, safety_parameters
 from formation.planner import surviving_first_moves_many
 from formation.policy import Policy, export, load
+from formation.recipe.config import RefitSettings, RunConfig
+from formation.recipe.qnet import NetworkSpec
+from formation.recipe.safety_refit import StateBank, label_states, refit, safety_parameters
 
 SMOKE = "configs/smoke.yaml"
 GRID = GameConfig.from_setting(2, obs_type="grid", frame_stack=2, height=9, width=9, n_obstacles=2)
@@ -205,8 +205,8 @@ def test_the_command_takes_its_settings_from_a_run_folders_refit_section(tmp_pat
 
     import yaml
 
-    from formation.learn.team import network_specs
     from formation.policy import RL_MODULES
+    from formation.recipe.team import network_specs
 
     run = RunConfig.load(SMOKE, {"train.safety_horizon": 2, "train.safety_encoder": True, "refit.rounds": 1,
                                  "refit.episodes": 30, "refit.horizon": 2, "refit.holdout_episodes": 10,

@@ -7,7 +7,7 @@ import time
 import pytest
 
 from formation.config import ConfigError
-from formation.learn.config import RunConfig
+from formation.recipe.config import RunConfig
 from formation.storage import RemoteRun, is_uri, local_run_folder, staging_folder
 from formation.train import check_resources, missing_resources
 

@@ -9,8 +9,8 @@ import torch
 
 from formation.config import GameConfig
 from formation.game import BatchedGame
-from formation.learn.teacher import Teacher, lockstep_order
 from formation.planner import shortest_path
+from formation.recipe.teacher import Teacher, lockstep_order
 
 SMALL = GameConfig.from_setting(None, height=9, width=9, n_obstacles=1)
 

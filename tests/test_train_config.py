@@ -4,7 +4,7 @@ import pytest
 import yaml
 
 from formation.config import ConfigError
-from formation.learn.config import RunConfig
+from formation.recipe.config import RunConfig
 
 
 def one_line_error(values=None, path=None, overrides=None) -> str:
@@ -93,7 +93,7 @@ REMOVED_VALUES = [("lr_end", 1e-5), ("failure_restarts", 0.25), ("mirror", True)
 
 @pytest.mark.parametrize("key, value", REMOVED_VALUES)
 def test_a_removed_option_that_would_do_something_is_refused_in_one_line_naming_it(tmp_path, key, value):
-    from formation.learn.config import REMOVED
+    from formation.recipe.config import REMOVED
 
     assert {k for k, _ in REMOVED_VALUES} == set(REMOVED)
     message = one_line_error({"train": {key: value}})
@@ -107,7 +107,7 @@ def test_a_removed_option_that_would_do_something_is_refused_in_one_line_naming_
 
 
 def test_a_saved_run_that_names_removed_options_at_their_neutral_values_loads_without_them(tmp_path):
-    from formation.learn.config import REMOVED
+    from formation.recipe.config import REMOVED
 
     saved = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "grid"}}).to_dict()
     # what 0.1 wrote into every run folder's config.yaml

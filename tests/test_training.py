@@ -11,13 +11,13 @@ import yaml
 ray = pytest.importorskip("ray")
 
 from formation.config import ConfigError  # noqa: E402
-from formation.learn.config import RunConfig  # noqa: E402
+from formation.recipe.config import RunConfig  # noqa: E402
 
 SMOKE = "configs/smoke.yaml"
 
 
 def build(actors: int, **train):
-    from formation.learn.algorithm import build_algorithm_config
+    from formation.rllib.algorithm import build_algorithm_config
 
     run = RunConfig.load(SMOKE, {"resources.num_rollout_actors": actors,
                                  "resources.cpus_per_rollout_actor": 0.5 if actors > 1 else 1.0,

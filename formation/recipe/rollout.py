@@ -1,7 +1,7 @@
 """Rollouts: a batch of games played by given actions, turned into replay records.
 
 ``GameRollout`` owns a ``BatchedGame``, keeps each game's frame stack for acting, and after
-every step returns the records of that step (see ``formation.learn.replay``): one per game, plus
+every step returns the records of that step (see ``formation.recipe.replay``): one per game, plus
 a terminal record for each game whose episode was just truncated. Finished games restart at once.
 No Ray, no torch: the rollout actors (EnvRunners) and the tests use it alike.
 """
@@ -13,7 +13,7 @@ import numpy as np
 from formation.config import GameConfig
 from formation.game import BatchedGame, Observer, Scenario
 from formation.game.core import MOVES
-from formation.learn.replay import Chunk
+from formation.recipe.replay import Chunk
 
 STARTS = ("spec", "exploring")  # where an episode started: its statistics' "start"
 
@@ -38,7 +38,7 @@ def exploring_start(scenario: Scenario, config: GameConfig, rng: np.random.Gener
 class GameRollout:
     def __init__(self, config: GameConfig, batch_size: int, seed: int | None = None, stream_offset: int = 0,
                  potential=None, shaping: float = 0.0, gamma: float = 0.99, exploring_starts: float = 0.0):
-        """``potential`` (a ``formation.learn.shaping.Potential``), if given, adds the shaping term
+        """``potential`` (a ``formation.recipe.shaping.Potential``), if given, adds the shaping term
         ``shaping * (gamma * Phi(s') - Phi(s))`` to every stored reward (never to the episode
         statistics, which report the game's own reward). ``exploring_starts``: the fraction of episodes
         that start from an ``exploring_start`` instead of the spec's places."""

@@ -20,12 +20,12 @@ from ray.rllib.utils.checkpoints import Checkpointable
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_NO
 
 from formation.game import MOVES
-from formation.learn.config import RunConfig, TrainSettings
-from formation.learn.qnet import q_values_of, team_q_values
-from formation.learn.rollout import GameRollout, concatenate
-from formation.learn.shaping import Potential
-from formation.learn.teacher import Teacher, safety_labels
-from formation.learn.team import module_of_agent, spaces_of
+from formation.recipe.config import RunConfig, TrainSettings
+from formation.recipe.qnet import q_values_of, team_q_values
+from formation.recipe.rollout import GameRollout, concatenate
+from formation.recipe.shaping import Potential
+from formation.recipe.teacher import Teacher, safety_labels
+from formation.recipe.team import module_of_agent, spaces_of
 
 
 def epsilon_at(env_steps: int, train: TrainSettings) -> float:

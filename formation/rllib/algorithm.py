@@ -31,13 +31,13 @@ from ray.rllib.utils.metrics import (
 
 from formation.config import RunFailed
 from formation.evaluate import play_greedy
-from formation.learn.config import RunConfig
-from formation.learn.learner import FormationLearner
-from formation.learn.module import DuelingQModule
-from formation.learn.replay_actor import ReplayActor
-from formation.learn.rollout import STARTS
-from formation.learn.rollout_actor import RolloutActor
-from formation.learn.team import answers_leader, module_of_agent, network_specs, spaces_of
+from formation.recipe.config import RunConfig
+from formation.recipe.rollout import STARTS
+from formation.recipe.team import answers_leader, module_of_agent, network_specs, spaces_of
+from formation.rllib.learner import FormationLearner
+from formation.rllib.module import DuelingQModule
+from formation.rllib.replay_actor import ReplayActor
+from formation.rllib.rollout_actor import RolloutActor
 
 
 def policy_mapping_fn(agent_id, episode=None, **kwargs) -> str:
@@ -90,7 +90,7 @@ class FormationDQNConfig(DQNConfig):
 
 
 def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLModuleSpec]:
-    """One DuelingQModule spec per policy: its network (``formation.learn.team.network_specs``) and the
+    """One DuelingQModule spec per policy: its network (``formation.recipe.team.network_specs``) and the
     exploration schedule."""
     t = run.train
     obs_space, act_space = spaces_of(run)

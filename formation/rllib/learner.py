@@ -21,98 +21,11 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
-from formation.game.core import joint_mask_bits
-from formation.learn.module import PREPARED_NEXT_OBS, PREPARED_OBS, SAFETY_LOGITS
-from formation.learn.qnet import N_ACTIONS, double_q_target, large_margin_sets
+from formation.recipe.loss import ACTIONS, NEXT_OBS, OBS, dqn_loss, module_batches
+from formation.rllib.module import PREPARED_NEXT_OBS, PREPARED_OBS, SAFETY_LOGITS
 
-RETURNS, DISCOUNTS, LABELS, WEIGHTS = "n_step_returns", "n_step_discounts", "teacher_labels", "weights"
-ACCEPTED = "teacher_accepted"  # train.any_shortest_move: the moves the margin accepts, bools beside LABELS
-SAFE = "safe_joint_moves"  # train.safety_horizon: (N, 16) bools, the joint moves that start safe steps
-
-
-def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
-                   answering: frozenset[str] = frozenset(), any_shortest_move: str = "none", safety: bool = False
-                   ) -> dict[str, dict[str, np.ndarray]]:
-    """Split a replay sample (all agents) into one batch per module; agents that share a module
-    (followers with one policy) contribute one row each for every sampled step. A module in
-    ``answering`` (it answers the leader) gets actions as pairs with the leader's move, ``4 * leader +
-    own`` (its Q-values' index), and labels as one own move per move of the leader, (N, 4): the
-    sample's ``answers`` where it has them, its label in the row of the move the leader made, -1 where
-    there is none. With ``any_shortest_move`` "leader" (one follower), the leader's module also gets
-    ``ACCEPTED``, (N, 4) bools: every move of the leader that the sample's ``accepted`` joint actions hold
-    (with any follower move), and the label's move. With ``safety`` every module gets ``SAFE``, the sample's
-    ``safe`` joint moves as (N, 16) bools (leader's move, follower's move, row by row), one row per agent of
-    the module."""
-    rows: dict[str, list[int]] = {}
-    for agent, module in enumerate(module_of_agent):
-        rows.setdefault(module, []).append(agent)
-    leader = sample["actions"][:, 0].astype(np.int64)
-    out = {}
-    for module, agents in rows.items():
-        shared = {key: _repeat(sample[key], len(agents)) for key in ("obs", "next_obs", "discounts", "weights")}
-        actions = [sample["actions"][:, a] for a in agents]
-        labels = [sample["labels"][:, a] for a in agents]
-        if module in answering:
-            actions = [N_ACTIONS * leader + a for a in actions]
-            labels = [_answer_rows(sample, a, leader) for a in agents]
-        out[module] = {Columns.OBS: shared["obs"], Columns.NEXT_OBS: shared["next_obs"],
-                       Columns.ACTIONS: np.concatenate(actions),
-                       RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
-                       DISCOUNTS: shared["discounts"], LABELS: np.concatenate(labels), WEIGHTS: shared["weights"]}
-        if any_shortest_move == "leader" and agents == [0]:
-            out[module][ACCEPTED] = _accepted_moves(sample["accepted"], labels[0])
-        if safety:
-            out[module][SAFE] = _repeat(joint_mask_bits(sample["safe"]).reshape(len(leader), -1), len(agents))
-    return out
-
-
-def _accepted_moves(accepted: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """The leader's accepted moves, (N, 4) bools (see ``module_batches``): those that start a shortest path
-    with some follower move, and each label's move (``labels`` (N,))."""
-    moves = joint_mask_bits(accepted).any(2)  # (N, leader's move, follower's move) -> the leader's
-    return moves | ((labels[:, None] == np.arange(N_ACTIONS)) & (labels[:, None] >= 0))
-
-
-def _answer_rows(sample: dict[str, np.ndarray], agent: int, leader: np.ndarray) -> np.ndarray:
-    """(N, 4): ``agent``'s teacher move for each move of the leader (-1: none), its label in the row of
-    the move the leader made."""
-    n = len(leader)
-    rows = sample["answers"][:, agent].copy() if "answers" in sample else np.full((n, N_ACTIONS), -1, np.int64)
-    label = sample["labels"][:, agent]
-    taught = np.flatnonzero(label >= 0)
-    rows[taught, leader[taught]] = label[taught]
-    return rows
-
-
-def _margin(q: torch.Tensor, accepted: torch.Tensor, gap: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """DQfD's J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), a_E the teacher's (planner's) action, per step of a
-    module batch, summed over its labelled rows; with several ``accepted`` moves (N, rows, moves), Q(s, a_E)
-    is the best of theirs. Also whether each step has a labelled row. A row with none accepts all: no loss."""
-    taught_rows = accepted.any(2)
-    moves = accepted.shape[2]
-    rows = large_margin_sets(q.reshape(-1, moves), (accepted | ~taught_rows[..., None]).reshape(-1, moves), gap)
-    return (rows.view(len(q), -1) * taught_rows).sum(1), taught_rows.any(1)
-
-
-def _label_moves(labels: torch.Tensor, n_q: int) -> torch.Tensor:
-    """(N, rows, moves) bools: each labelled row's label move (none where the label is -1). Rows: 1 (of
-    ``n_q``, the module's Q-values), or 4 for a module that answers the leader (one per move of the leader)."""
-    labels = labels.long()
-    moves = n_q if labels.dim() == 1 else N_ACTIONS
-    accepted = torch.nn.functional.one_hot(labels.clamp(min=0), moves).bool() & (labels >= 0)[..., None]
-    return accepted if accepted.dim() == 3 else accepted.unsqueeze(1)
-
-
-def _accepted_rows(accepted: torch.Tensor) -> torch.Tensor:
-    """A module batch's ``ACCEPTED`` as (N, rows, moves) bools."""
-    accepted = accepted.bool()
-    return accepted if accepted.dim() == 3 else accepted.unsqueeze(1)
-
-
-def _repeat(a: np.ndarray, copies: int) -> np.ndarray:
-    """``a`` once per agent of a module; the array itself (no copy) for a module of one agent."""
-    return a if copies == 1 else np.concatenate([a] * copies)
-
+# the recipe's batches use RLlib's column names
+assert (OBS, NEXT_OBS, ACTIONS) == (Columns.OBS, Columns.NEXT_OBS, Columns.ACTIONS)
 
 class FormationLearner(DQNTorchLearner):
     _replays: list = []
@@ -187,33 +100,11 @@ class FormationLearner(DQNTorchLearner):
 
     def compute_loss_for_module(self, *, module_id: str, config: Any, batch: dict[str, Any],
                                 fwd_out: dict[str, Any]) -> torch.Tensor:
-        q = fwd_out[QF_PREDS]
-        actions = batch[Columns.ACTIONS].long().unsqueeze(1)
-        q_taken = q.gather(1, actions).squeeze(1)
-        with torch.no_grad():
-            y = double_q_target(batch[RETURNS], batch[DISCOUNTS], fwd_out[QF_NEXT_PREDS], fwd_out[QF_TARGET_NEXT_PREDS])
-        td = q_taken - y
-        loss = (batch[WEIGHTS] * torch.nn.functional.smooth_l1_loss(q_taken, y, reduction="none")).mean()
-        priority = td.detach().abs()
-        if config.margin > 0:
-            labelled = _label_moves(batch[LABELS], q.shape[1])
-            if ACCEPTED not in batch:
-                large_margin, taught = _margin(q, labelled, config.margin_gap)
-            else:  # every accepted move
-                large_margin, taught = _margin(q, _accepted_rows(batch[ACCEPTED]), config.margin_gap)
-            if taught.any():
-                loss = loss + config.margin * large_margin[taught].mean()
-                # prioritized replay also revisits the states where the module disagrees with the teacher
-                priority = priority + config.margin * (large_margin.detach() * taught)
-        # logged by pull_and_update, in one thread (RLlib's metrics logger is not thread-safe)
-        self._stats[module_id] = {"q_mean": q_taken.detach().mean().item(),
-                                  "td_abs_mean": td.detach().abs().mean().item()}
-        if SAFE in batch and SAFETY_LOGITS in fwd_out:
-            logits, safe = fwd_out[SAFETY_LOGITS], batch[SAFE].float()
-            safety = torch.nn.functional.binary_cross_entropy_with_logits(logits, safe)
-            loss = loss + config.safety_weight * safety
-            wrong = (logits.detach() > 0) != safe.bool()
-            self._stats[module_id].update(safety_loss=safety.item(), safety_error=wrong.float().mean().item())
+        """``formation.recipe.loss.dqn_loss`` on the module's batch; its priorities and statistics are kept for
+        ``pull_and_update``, which logs them in one thread (RLlib's metrics logger is not thread-safe)."""
+        loss, priority, self._stats[module_id] = dqn_loss(
+            batch, fwd_out[QF_PREDS], fwd_out[QF_NEXT_PREDS], fwd_out[QF_TARGET_NEXT_PREDS], config.margin,
+            config.margin_gap, fwd_out.get(SAFETY_LOGITS), config.safety_weight)
         self._priority[module_id] = priority.cpu().numpy()
         return loss
 

@@ -10,8 +10,8 @@ import gymnasium as gym
 import numpy as np
 
 from formation.game.render import GRID_PLANES
-from formation.learn.config import RunConfig
-from formation.learn.qnet import NetworkSpec
+from formation.recipe.config import RunConfig
+from formation.recipe.qnet import NetworkSpec
 
 
 def spaces_of(run: RunConfig) -> tuple[gym.spaces.Box, gym.spaces.Discrete]:

@@ -12,7 +12,7 @@ its predecessor and successor in the same episode; when the ring overwrites a re
 id changes, so a stale link is detected by comparing ids. The predecessor of an episode's first
 record is itself, which makes the stack at a reset the first frame repeated (spec 'Screen').
 
-Nothing here knows of Ray or torch; ``formation.learn.replay_actor`` wraps it as a Ray actor.
+Nothing here knows of Ray or torch; ``formation.rllib.replay_actor`` wraps it as a Ray actor.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The Q-network and the DQN arithmetic, in plain torch (the RLlib module and learner wrap these).
+"""The Q-network, in plain torch (the RLlib module wraps it; ``formation.recipe.loss`` holds the DQN arithmetic).
 
 Observations arrive as uint8 ``(N, H, W, C)`` (C = frame channels x stack) and are normalised
 here. The encoders are sized for CPUs: the pixel encoder's first layer reads non-overlapping
@@ -31,7 +31,7 @@ from torch import nn
 
 from formation.config import ConfigError
 from formation.game.render import cell_pixel_bounds
-from formation.learn.config import drop_removed
+from formation.recipe.config import drop_removed
 
 N_ACTIONS = 4
 
@@ -53,16 +53,6 @@ def dueling(value: torch.Tensor, advantage: torch.Tensor) -> torch.Tensor:
     return value + advantage - advantage.mean(dim=1, keepdim=True)
 
 
-def double_q_target(returns: torch.Tensor, discounts: torch.Tensor, q_next_online: torch.Tensor,
-                    q_next_target: torch.Tensor) -> torch.Tensor:
-    """y = R + gamma^n * Q_target(s', argmax_a Q_online(s', a))   (double DQN, van Hasselt et al. 2016).
-
-    ``returns`` is the n-step discounted reward sum and ``discounts`` gamma^n, or 0 where the
-    episode terminated within the n steps."""
-    best = q_next_online.argmax(dim=1, keepdim=True)
-    return returns + discounts * q_next_target.gather(1, best).squeeze(1)
-
-
 def team_q_values(q: dict[str, np.ndarray], modules: list[str], leader_moves: np.ndarray | None = None
                   ) -> np.ndarray:
     """Every agent's Q-values of its four moves, (N, agents, 4), from each module's output ``q``
@@ -76,20 +66,6 @@ def team_q_values(q: dict[str, np.ndarray], modules: list[str], leader_moves: np
     answered = {m: v.reshape(-1, N_ACTIONS, N_ACTIONS)[rows, leader_moves] if v.shape[-1] == N_ACTIONS ** 2 else v
                 for m, v in q.items()}
     return np.stack([answered[m] for m in modules], axis=1)
-
-
-def large_margin(q: torch.Tensor, labels: torch.Tensor, gap: float) -> torch.Tensor:
-    """DQfD's J_E(Q) = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), l = ``gap`` for a != a_E, 0 for a_E
-    (Hester et al. 2018, eq. 2), per row; ``labels`` are the teacher's actions a_E (all >= 0)."""
-    return large_margin_sets(q, torch.nn.functional.one_hot(labels.long(), q.shape[1]).bool(), gap)
-
-
-def large_margin_sets(q: torch.Tensor, accepted: torch.Tensor, gap: float) -> torch.Tensor:
-    """``large_margin`` towards a set of teacher's actions: max_a [Q(s, a) + l(a)] - max_{a in E} Q(s, a),
-    l = ``gap`` for a not in E, 0 in E; ``accepted`` (bool, the shape of ``q``) marks E, at least one
-    action per row. With one action in E it is ``large_margin``."""
-    best_accepted = q.masked_fill(~accepted, float("-inf")).max(1).values
-    return (q + gap * (~accepted)).max(1).values - best_accepted
 
 
 def leader_entry(obs: torch.Tensor, frame_channels: int, screens: bool) -> torch.Tensor:
@@ -188,7 +164,7 @@ class ObstacleForecast(nn.Module):
         if tuple(range(min(lags), max(lags) + 1)) != tuple(lags):
             raise ValueError(f"lags: {lags} are not consecutive")
         # the hypotheses (direction, speed) an obstacle may have now: the spec's speeds 1 and 2 (the training
-        # config refuses others, formation.learn.config.FORECAST_SPEEDS)
+        # config refuses others, formation.recipe.config.FORECAST_SPEEDS)
         self.register_buffer("directions", torch.tensor([1, 1, -1, -1]), persistent=False)
         self.register_buffer("speeds", torch.tensor([1, 2, 1, 2]), persistent=False)
         self.register_buffer("rows", torch.arange(self.height), persistent=False)

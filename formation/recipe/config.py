@@ -23,12 +23,12 @@ from typing import Any
 import yaml
 
 from formation.config import ConfigError, GameConfig
-from formation.learn.shaping import POTENTIALS
+from formation.recipe.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
 ANY_SHORTEST_MOVE = ("none", "leader")  # train.any_shortest_move: whose margin accepts more
 EXPLORATIONS = ("independent", "joint")
-FORECAST_SPEEDS = (1, 2)  # the obstacle speeds formation.learn.qnet.ObstacleForecast reads
+FORECAST_SPEEDS = (1, 2)  # the obstacle speeds formation.recipe.qnet.ObstacleForecast reads
 
 # options tried and not kept (docs/TRAINING.md has their numbers; git history their code): a saved run's
 # config.yaml or a policy card may still name one at its neutral value, which is dropped; any other value is refused
@@ -80,12 +80,12 @@ class TrainSettings:
     # explores together, every follower copying the leader's random move (keeps the formation)
     exploration: str = "joint"
     shaping: float = 1.0  # weight of potential-based shaping; 0 = the paper's reward alone
-    potential: str = "distance"  # none | distance (see formation.learn.shaping)
+    potential: str = "distance"  # none | distance (see formation.recipe.shaping)
     planner_slack: int = 6  # the teacher: paths longer than the lower bound + slack count as lost
     steps_per_sample: int = 8  # steps of all of an actor's games per push to the replay
     demonstrations: float = 0.5  # fraction of games played by the clairvoyant planner (the teacher)
     # exploring starts: the fraction of training episodes that start with the team, in its start formation,
-    # moved to a random place on the board clear of the obstacles (formation.learn.rollout.exploring_start),
+    # moved to a random place on the board clear of the obstacles (formation.recipe.rollout.exploring_start),
     # so that it also learns states its own play seldom reaches (the top row beside the destination).
     # Evaluation always starts from the spec's places
     exploring_starts: float = 0.0
@@ -93,18 +93,18 @@ class TrainSettings:
     margin_gap: float = 5.0  # DQfD's l(a_E, a): how far above every other action the teacher's Q must stand
     dagger: bool = True  # label every visited state with the teacher's joint action (DAgger)
     # DAgger labels of an episode's first step (no motion on screen yet): keep a path for the most obstacle
-    # velocities instead of the clairvoyant planner's choice (formation.learn.teacher)
+    # velocities instead of the clairvoyant planner's choice (formation.recipe.teacher)
     robust_first_step: bool = True
     # the followers' networks answer the leader: one Q-value per (leader's move, own move), and a follower
-    # makes its move in the row of the move the leader makes (formation.learn.qnet.team_q_values); DAgger
-    # labels it with the teacher's answer to that move (formation.learn.teacher.Teacher.answer)
+    # makes its move in the row of the move the leader makes (formation.recipe.qnet.team_q_values); DAgger
+    # labels it with the teacher's answer to that move (formation.recipe.teacher.Teacher.answer)
     follower_answers_leader: bool = True
     # with follower_answers_leader, DAgger also labels the rows of the moves the leader did not make: the
-    # teacher's answer to every move the leader could make there (formation.learn.teacher.Teacher.answers), not
+    # teacher's answer to every move the leader could make there (formation.recipe.teacher.Teacher.answers), not
     # only to the one it made
     answer_every_leader_move: bool = False
     # DAgger's margin accepts every move that starts a shortest path, not only the label's
-    # (formation.learn.qnet.large_margin_sets): "leader", the leader's margin is towards the best of its moves
+    # (formation.recipe.qnet.large_margin_sets): "leader", the leader's margin is towards the best of its moves
     # that start one with some follower move, and the follower still learns the teacher's answers; "none", the
     # label's move alone. Needs dagger, follower_answers_leader and one follower
     any_shortest_move: str = "none"
@@ -113,15 +113,15 @@ class TrainSettings:
     hidden: int = 256
     channels: tuple[int, int, int] = (32, 64, 64)
     # the Q-networks look through a window that follows the leader: cells above it, below it, and either
-    # side (formation.learn.qnet.LeaderWindow); null: the whole screen, as the paper's networks
+    # side (formation.recipe.qnet.LeaderWindow); null: the whole screen, as the paper's networks
     leader_window: tuple[int, int, int] | None = (12, 3, 10)
     # pixels only: the Q-networks read one pixel per cell of the board from each screen (the renderer paints a
-    # whole cell in one colour, so nothing is lost; formation.learn.qnet.ScreenCells), then every cell;
+    # whole cell in one colour, so nothing is lost; formation.recipe.qnet.ScreenCells), then every cell;
     # false: the screen in 4x4-pixel patches
     screen_cells: bool = True
     # the Q-networks also read a forecast of the obstacles: for every cell, whether an agent arriving there in
     # lockstep with the leader (or one to three steps later) would collide, from the obstacles' motion in the
-    # last two frames and the game's rule of motion (formation.learn.qnet.ObstacleForecast; no weights).
+    # last two frames and the game's rule of motion (formation.recipe.qnet.ObstacleForecast; no weights).
     # Needs grid observations or screen_cells, and frame_stack >= 2
     obstacle_forecast: bool = True
     # each Q-network also learns, beside its Q-values, which of the team's 16 joint moves start this many steps
@@ -243,7 +243,7 @@ class EvalSettings:
 @dataclass(frozen=True)
 class RefitSettings:
     """``formation refit``: the safety heads of a trained team fitted again on many fresh states of its own
-    play, labelled by the planner (formation.learn.safety_refit; docs/TRAINING.md "Refitting the safety
+    play, labelled by the planner (formation.recipe.safety_refit; docs/TRAINING.md "Refitting the safety
     heads"). Each round plays ``episodes`` games with the team as it is (vetoed greedy, a random joint move in
     an ``epsilon`` share of the steps), labels every state with the joint moves that start ``horizon`` steps
     free of collisions and formation breaks, and fits the heads alone (and their own encoders) for ``epochs``

@@ -3,10 +3,10 @@
 It implements RLlib's ``QNetAPI`` and ``TargetNetworkAPI``, so RLlib's DQN learner (the stock
 path) and ours both train it, and ``InferenceOnlyAPI``, so rollout actors get weights without
 the target network. ``model_config``: ``network``, the network's ``NetworkSpec.to_dict()``
-(``formation.learn.team.network_specs``), and ``epsilon``.
+(``formation.recipe.team.network_specs``), and ``epsilon``.
 A module that answers the leader has 16 actions, (leader's move, own move) as ``4 * leader + own``: its greedy and
 exploring forward passes pick among those, so rollouts and evaluation pick its row themselves
-(``formation.learn.qnet.team_q_values``).
+(``formation.recipe.qnet.team_q_values``).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, QNetAPI, TargetNetwo
 from ray.rllib.core.rl_module.torch import TorchRLModule
 from ray.rllib.utils.schedules.scheduler import Scheduler
 
-from formation.learn.qnet import NetworkSpec
+from formation.recipe.qnet import NetworkSpec
 
 # a batch's observations as DuelingQNetwork.prepare makes them, when the learner prepared them already
 PREPARED_OBS, PREPARED_NEXT_OBS = "prepared_obs", "prepared_next_obs"

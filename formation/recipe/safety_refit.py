@@ -29,9 +29,9 @@ import torch
 
 from formation.config import ConfigError, GameConfig
 from formation.evaluate import play_greedy
-from formation.learn.config import REFIT_GAMES_PER_SEED, RefitSettings
-from formation.learn.qnet import N_ACTIONS, DuelingQNetwork
 from formation.planner import surviving_first_moves_many
+from formation.recipe.config import REFIT_GAMES_PER_SEED, RefitSettings
+from formation.recipe.qnet import N_ACTIONS, DuelingQNetwork
 
 LABEL_CHUNK = 256  # scenarios per planner call: small enough for its dense deduplication (planner.py)
 JOINT = N_ACTIONS * N_ACTIONS

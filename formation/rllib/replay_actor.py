@@ -13,7 +13,7 @@ import uuid
 
 import ray
 
-from formation.learn.replay import Chunk, FrameReplay
+from formation.recipe.replay import Chunk, FrameReplay
 
 
 @ray.remote(num_cpus=0, max_restarts=-1, max_task_retries=-1)
