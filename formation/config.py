@@ -40,28 +40,30 @@ def _fail(field_name: str, message: str) -> None:
 class GameConfig:
     """All rules of one game. Defaults are setting 1."""
 
+    # the paper's named setting (1-4) whose board, obstacles and formation the others override; null: none
     setting: int | None = 1
-    height: int = 25
-    width: int = 25
-    n_obstacles: int = 3
-    formation: str = "horizontal"
-    d_min: float = 1.0
-    d_max: float = 4.0
-    max_steps: int = 200
-    n_followers: int = 1
-    # Start cells; None means the spec's default for the formation and follower count.
+    height: int = 25  # rows of the board
+    width: int = 25  # columns of the board
+    n_obstacles: int = 3  # obstacles, at most one per row of the obstacle band
+    formation: str = "horizontal"  # horizontal or vertical: where the followers keep to, beside or behind the leader
+    d_min: float = 1.0  # the formation holds while every follower is farther than d_min from the leader
+    d_max: float = 4.0  # and nearer than d_max
+    max_steps: int = 200  # steps before an episode is truncated
+    n_followers: int = 1  # followers beside the leader
+    # the leader's start cell; null: the spec's default for the formation and follower count
     leader_start: tuple[int, int] | None = None
-    follower_starts: tuple[tuple[int, int], ...] | None = None
-    obstacle_speeds: tuple[int, ...] = (1, 2)
-    # The paper's comprehensive reward, weights as config values.
+    follower_starts: tuple[tuple[int, int], ...] | None = None  # the followers' start cells; null: the spec's
+    obstacle_speeds: tuple[int, ...] = (1, 2)  # the speeds (cells a step) an obstacle is drawn with
+    # the paper's comprehensive reward, its weights as config values: each agent's when the leader reaches the
+    # destination with the formation kept
     reward_reach: float = 50.0
-    reward_collision: float = -1.0
-    reward_formation_kept: float = 1.0
-    reward_formation_broken: float = -1.0
-    # What the agents observe: the 84x84 RGB screen, or one plane per entity kind on the grid.
+    reward_collision: float = -1.0  # each agent's reward when it collides
+    reward_formation_kept: float = 1.0  # each agent's reward for a step that keeps the formation
+    reward_formation_broken: float = -1.0  # each agent's reward for a step that breaks it
+    # what the agents observe: "pixels", the 84x84 RGB screen, or "grid", one plane per entity kind on the board
     obs_type: str = "pixels"
-    frame_stack: int = 4
-    screen_size: int = field(default=84, repr=False)
+    frame_stack: int = 4  # observations stack this many frames, the newest last
+    screen_size: int = field(default=84, repr=False)  # pixels of a side of the screen (not a config key)
 
     # ----------------------------------------------------------------- construction
     @classmethod

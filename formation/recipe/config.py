@@ -13,9 +13,13 @@
 
 from __future__ import annotations
 
+import ast
 import dataclasses
+import inspect
+import json
 import math
 import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,7 +34,7 @@ ANY_SHORTEST_MOVE = ("none", "leader")  # train.any_shortest_move: whose margin 
 EXPLORATIONS = ("independent", "joint")
 FORECAST_SPEEDS = (1, 2)  # the obstacle speeds formation.recipe.qnet.ObstacleForecast reads
 
-# options tried and not kept (docs/TRAINING.md has their numbers; git history their code): a saved run's
+# options tried and not kept (docs/lab/TRAINING.md has their numbers; git history their code): a saved run's
 # config.yaml or a policy card may still name one at its neutral value, which is dropped; any other value is refused
 REMOVED: dict[str, tuple[tuple[Any, ...], str]] = {
     "lr_end": ((None,), "a falling learning rate did not help"),
@@ -56,26 +60,26 @@ def drop_removed(section: str, values: dict[str, Any]) -> dict[str, Any]:
         value = out.pop(key)
         if not any(value == v and type(value) is type(v) for v in neutral):
             allowed = " / ".join("null" if v is None else str(v).lower() for v in neutral)
-            raise ConfigError(f"{section}.{key}: removed in 0.2 ({why}; docs/lab/), so {value!r} is refused; "
-                              f"allowed: {allowed} / absent")
+            raise ConfigError(f"{section}.{key}: removed in 0.2 ({why}; docs/lab/TRAINING.md), so {value!r} is "
+                              f"refused; allowed: {allowed} / absent")
     return out
 
 
 @dataclass(frozen=True)
 class TrainSettings:
-    """How the two DQNs learn. Defaults are the recipe that reaches (see docs/TRAINING.md)."""
+    """How the two DQNs learn. Defaults are the recipe that reaches (see docs/lab/TRAINING.md)."""
 
-    gamma: float = 0.97
-    n_step: int = 3
-    lr: float = 1e-3
-    batch_size: int = 64
-    replay_capacity: int = 100_000
+    gamma: float = 0.97  # discount factor
+    n_step: int = 3  # steps of the n-step return in the double DQN target
+    lr: float = 1e-3  # learning rate (Adam)
+    batch_size: int = 64  # steps per learner update
+    replay_capacity: int = 100_000  # steps the replay keeps (across its shards)
     replay_ratio: float = 0.25  # learner updates per env step, whatever the number of actors
     learning_starts: int = 2_000  # env steps in replay before the first update
     target_update_every: int = 100  # learner updates between target-network syncs
-    epsilon_start: float = 1.0
-    epsilon_end: float = 0.05
-    epsilon_env_steps: int = 10_000
+    epsilon_start: float = 1.0  # exploration rate at the start
+    epsilon_end: float = 0.05  # exploration rate after epsilon_env_steps
+    epsilon_env_steps: int = 10_000  # env steps over which the exploration rate falls linearly
     # independent: each agent explores on its own; joint: with probability epsilon the whole team
     # explores together, every follower copying the leader's random move (keeps the formation)
     exploration: str = "joint"
@@ -104,14 +108,14 @@ class TrainSettings:
     # only to the one it made
     answer_every_leader_move: bool = False
     # DAgger's margin accepts every move that starts a shortest path, not only the label's
-    # (formation.recipe.qnet.large_margin_sets): "leader", the leader's margin is towards the best of its moves
+    # (formation.recipe.loss.large_margin_sets): "leader", the leader's margin is towards the best of its moves
     # that start one with some follower move, and the follower still learns the teacher's answers; "none", the
     # label's move alone. Needs dagger, follower_answers_leader and one follower
     any_shortest_move: str = "none"
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
-    followers_share_policy: bool = True
-    hidden: int = 256
-    channels: tuple[int, int, int] = (32, 64, 64)
+    followers_share_policy: bool = True  # all followers act with one network (module)
+    hidden: int = 256  # units of the dueling heads' hidden layers
+    channels: tuple[int, int, int] = (32, 64, 64)  # output channels of the encoder's three convolutions
     # the Q-networks look through a window that follows the leader: cells above it, below it, and either
     # side (formation.recipe.qnet.LeaderWindow); null: the whole screen, as the paper's networks
     leader_window: tuple[int, int, int] | None = (12, 3, 10)
@@ -130,16 +134,16 @@ class TrainSettings:
     # safety_weight; greedy play then keeps to the joint moves that head judges safe (formation.policy). 0: none.
     # Needs one follower
     safety_horizon: int = 0
-    safety_weight: float = 1.0
+    safety_weight: float = 1.0  # weight of the safety head's loss
     # the safety head reads an encoder of its own (a copy of the Q-values' layers with weights, trained by the
     # safety loss alone) instead of the Q-values' features, so its errors need not fall in the states where the
     # Q-values err. Needs a safety head
     safety_encoder: bool = False
-    grad_clip: float = 10.0
-    total_env_steps: int = 300_000
+    grad_clip: float = 10.0  # global gradient norm clip
+    total_env_steps: int = 300_000  # env steps to train for
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
     path: str = "formation"  # "formation": rollout actors -> replay actor -> learner; "stock": RLlib's DQN
-    seed: int = 0
+    seed: int = 0  # seed of games, exploration and networks
 
     @property
     def safety_head(self) -> bool:
@@ -205,11 +209,11 @@ class TrainSettings:
 
 @dataclass(frozen=True)
 class ResourceSettings:
-    num_rollout_actors: int = 1
-    games_per_actor: int = 32
-    cpus_per_rollout_actor: float = 1.0
-    num_gpus_per_learner: float = 0.0
-    num_replay_shards: int = 1
+    num_rollout_actors: int = 1  # rollout actors (Ray actors that play games); 0 on the stock path: the driver samples
+    games_per_actor: int = 32  # games each rollout actor plays at once
+    cpus_per_rollout_actor: float = 1.0  # CPUs Ray reserves for each rollout actor
+    num_gpus_per_learner: float = 0.0  # GPUs for the learner (0: it runs on a CPU)
+    num_replay_shards: int = 1  # replay actors the steps are spread over
     # on a Ray cluster that the run joins (`ray job submit`): how long to wait for the asked
     # resources to join (worker nodes still starting) before failing; a local Ray never waits
     wait_for_resources_s: float = 120.0
@@ -225,8 +229,8 @@ class ResourceSettings:
 
 @dataclass(frozen=True)
 class EvalSettings:
-    every_env_steps: int = 25_000
-    episodes: int = 200
+    every_env_steps: int = 25_000  # env steps between greedy evaluations during training
+    episodes: int = 200  # games of each greedy evaluation
     seed: int = 1_000_000  # evaluation scenarios come from seeds training never uses
     gif_episodes: int = 3  # the final evaluation's first episodes, side by side, in the run folder's greedy.gif
 
@@ -243,7 +247,7 @@ class EvalSettings:
 @dataclass(frozen=True)
 class RefitSettings:
     """``formation refit``: the safety heads of a trained team fitted again on many fresh states of its own
-    play, labelled by the planner (formation.recipe.safety_refit; docs/TRAINING.md "Refitting the safety
+    play, labelled by the planner (formation.recipe.safety_refit; docs/lab/TRAINING.md "Refitting the safety
     heads"). Each round plays ``episodes`` games with the team as it is (vetoed greedy, a random joint move in
     an ``epsilon`` share of the steps), labels every state with the joint moves that start ``horizon`` steps
     free of collisions and formation breaks, and fits the heads alone (and their own encoders) for ``epochs``
@@ -251,18 +255,18 @@ class RefitSettings:
     to the joint moves the heads judge safe with a probability above ``veto_threshold``, and where none is, to
     those ``veto_fallback`` names (``formation.policy.within_veto``)."""
 
-    rounds: int = 2
+    rounds: int = 2  # rounds of play, label and fit
     episodes: int = 5_000  # games per round
-    epsilon: float = 0.03
-    horizon: int = 8
-    epochs: float = 3.0
-    lr: float = 3e-4
-    batch_size: int = 256
+    epsilon: float = 0.03  # share of the steps the refit's games play a random joint move
+    horizon: int = 8  # the heads learn which joint moves start this many safe steps
+    epochs: float = 3.0  # passes over every state gathered so far, each round
+    lr: float = 3e-4  # learning rate of the heads' updates (Adam)
+    batch_size: int = 256  # states per update of the heads
     holdout_episodes: int = 300  # games whose states only measure the heads' wrong verdicts
     # the refit's games come from seeds seed, seed + 1, ... (1000 games each); evaluations use 1e6, 2e6, 3e6
     seed: int = 10_000_000
     workers: int = 0  # processes that run the planner's labels (0: one per CPU core)
-    veto_threshold: float = 0.97
+    veto_threshold: float = 0.97  # the refitted team's veto keeps to joint moves judged safe above this probability
     veto_fallback: str = "most_probable"  # or "above_half", the rule before it
 
     def __post_init__(self) -> None:
@@ -296,7 +300,7 @@ EVALUATION_SEEDS = (EvalSettings.seed, 2_000_000, 3_000_000)
 
 @dataclass(frozen=True)
 class CheckpointSettings:
-    every_iterations: int = 10
+    every_iterations: int = 10  # training iterations between checkpoints
 
     def __post_init__(self) -> None:
         _integer(self, "every_iterations", 1, section="checkpoint")
@@ -457,3 +461,52 @@ def _number(obj, name: str, low: float, high: float, section: str = "train", low
     if not ok:
         bound = "(" if low_open else "["
         raise ConfigError(f"{section}.{name}: {value!r} is not allowed; allowed: a number in {bound}{low}, {high}]")
+
+
+# ---------------------------------------------------------------------- docs/CONFIG.md
+def field_docs(cls: type) -> dict[str, str]:
+    """Each field's doc: the comment lines right above its line in ``cls``'s source and the comment at its end."""
+    lines, _ = inspect.getsourcelines(cls)  # a top-level class, its decorator first
+    body = next(node for node in ast.parse("".join(lines)).body if isinstance(node, ast.ClassDef)).body
+    docs = {}
+    for node in body:
+        if not isinstance(node, ast.AnnAssign):
+            continue
+        i = node.lineno - 1
+        above = []
+        while i - 1 - len(above) >= 0 and lines[i - 1 - len(above)].strip().startswith("#"):
+            above.insert(0, lines[i - 1 - len(above)].strip().lstrip("#").strip())
+        inline = lines[i].split("  # ", 1)[1].strip() if "  # " in lines[i] else ""
+        docs[node.target.id] = " ".join(above + ([inline] if inline else []))
+    return docs
+
+
+def markdown() -> str:
+    """docs/CONFIG.md: every option of every section, its default and its doc (``field_docs``)."""
+    sections = {"game": GameConfig, **SECTIONS}
+    defaults = RunConfig().to_dict()
+    out = ["# Configuration", "",
+           "Every option of a training config (`formation train CONFIG`), by section, with its default and meaning. "
+           "`--set section.key=value` overrides one. Generated from the config's own field docs by "
+           "`python -m formation.recipe.config --markdown > docs/CONFIG.md` (tests/test_config_doc.py keeps it in "
+           "sync); the configs in `configs/` cite the measurement behind each value they change.", ""]
+    for name, kind in sections.items():
+        doc = " ".join((kind.__doc__ or "").split())
+        out += [f"## {name}", "", doc, "", "| option | default | meaning |", "|---|---|---|"]
+        docs = field_docs(kind)
+        for key, value in defaults[name].items():
+            meaning = docs[key].replace("|", "\\|")
+            out.append(f"| `{key}` | `{json.dumps(value)}` | {meaning} |")
+        out.append("")
+    out += ["## removed", "", "Options removed in 0.2 (tried, not better: docs/lab/TRAINING.md). A saved run or a "
+            "policy card that names one at its neutral value loads without it; any other value is refused.", "",
+            "| option | neutral value | why |", "|---|---|---|"]
+    for key, (neutral, why) in REMOVED.items():
+        out.append(f"| `{key}` | `{json.dumps(neutral[0])}` | {why} |")
+    return "\n".join(out) + "\n"
+
+
+if __name__ == "__main__":
+    if sys.argv[1:] != ["--markdown"]:
+        sys.exit("usage: python -m formation.recipe.config --markdown > docs/CONFIG.md")
+    sys.stdout.write(markdown())

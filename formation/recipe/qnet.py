@@ -7,7 +7,7 @@ here. The encoders are sized for CPUs: the pixel encoder's first layer reads non
 With a ``LeaderWindow`` the network first shifts every frame of the stack so that the leader sits
 at a fixed place and keeps a window around it (the board's edge marked by a plane of its own):
 what is near the leader then lands on the same inputs wherever the team is, and a rule learnt in
-one place holds in every other (docs/TRAINING.md measures what that is worth).
+one place holds in every other (docs/lab/TRAINING.md measures what that is worth).
 
 With a ``ScreenCells`` reader the network first takes one pixel per cell of the board from each
 screen (the renderer paints a whole cell in one colour, so nothing on the screen is lost) and

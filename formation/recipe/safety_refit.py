@@ -3,7 +3,7 @@ labelled by the clairvoyant planner, fitted by the heads alone.
 
 During training a safety head (``train.safety_horizon``) learns from the states in the replay, a few
 hundred thousand at most, each seen by a learner that is also busy with the Q-values. Its wrong verdicts on
-unseen states are what the trained teams fail on (docs/TRAINING.md). After training, states cost far less:
+unseen states are what the trained teams fail on (docs/lab/TRAINING.md). After training, states cost far less:
 the team plays thousands of games at once (``formation.evaluate.play_greedy``), the planner labels their
 states in worker processes, and only the heads and their own encoders learn, by the learner's binary
 cross-entropy. Each round plays the team as it is then, behind its refitted heads, so later rounds see the
