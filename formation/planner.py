@@ -44,8 +44,7 @@ import numpy as np
 from formation.config import ConfigError, GameConfig
 from formation.game import COLLISION_OFFSETS, MOVES, BatchedGame, Scenario, parse_scenario
 
-__all__ = ["lower_bound", "paths_exist", "shortest_first_moves", "shortest_first_moves_many", "shortest_path",
-           "shortest_path_counts", "surviving_first_moves_many"]
+__all__ = ["lower_bound", "paths_exist", "shortest_first_moves_many", "shortest_path", "surviving_first_moves_many"]
 
 N_ACTIONS = len(MOVES)
 # Largest state-code space deduplicated with a dense array (int32 entries); above it, np.unique.
@@ -76,22 +75,17 @@ def shortest_path(scenario: dict | Scenario, setting: int | None = 1, *, config:
     return _first_found(_search, parse_scenario(scenario, config), config)
 
 
-def shortest_first_moves(scenario: dict | Scenario, *, config: GameConfig) -> tuple[int, list[tuple[int, ...]]] | None:
-    """The length of a shortest successful path and every joint action that starts one (in index
-    order), from one search; ``None`` if no path ends in success within ``max_steps``. At most
-    two followers (the first moves of a layer's states are kept as 64-bit masks)."""
-    return shortest_first_moves_many([scenario], config=config)[0]
-
-
 def shortest_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: GameConfig,
                               max_steps: Sequence[int] | None = None
                               ) -> list[tuple[int, list[tuple[int, ...]]] | None]:
-    """``shortest_first_moves`` of every scenario, the i-th with paths of at most ``max_steps[i]``
-    steps (default: ``config.max_steps`` for all), from searches over all the scenarios at once:
-    one per deadline they share, so numpy's cost per call is paid once for the lot."""
+    """For every scenario, the length of a shortest successful path and every joint action that starts
+    one (in index order); ``None`` where no path ends in success within ``max_steps[i]`` steps (default:
+    ``config.max_steps`` for all). From searches over all the scenarios at once, one per deadline they
+    share, so numpy's cost per call is paid once for the lot. At most two followers (the first moves of
+    a layer's states are kept as 64-bit masks)."""
     n_agents = _mask_agents(config)
     parsed = [parse_scenario(s, config) for s in scenarios]
-    found = _first_moves_many(parsed, config, max_steps, "mask")
+    found = _first_moves_many(parsed, config, max_steps, masks=True)
     return [None if f is None else (f[0], [_split(j, n_agents) for j in range(N_ACTIONS ** n_agents)
                                            if (f[1] >> j) & 1])
             for f in found]
@@ -102,62 +96,24 @@ def paths_exist(scenarios: Sequence[dict | Scenario], *, config: GameConfig,
     """Whether each scenario has a successful path of at most ``max_steps[i]`` steps (default:
     ``config.max_steps``): ``shortest_path(...) is not None`` for all of them, searched at once."""
     parsed = [parse_scenario(s, config) for s in scenarios]
-    return np.array([f is not None for f in _first_moves_many(parsed, config, max_steps, "none")], bool)
-
-
-def shortest_path_counts(scenario: dict | Scenario, *,
-                         config: GameConfig) -> tuple[int, dict[tuple[int, ...], float]] | None:
-    """The length of a shortest successful path and, for every joint action that starts one, how
-    many shortest successful paths start with it; ``None`` if no path ends in success within
-    ``max_steps``. Paths are sequences of joint actions (two that visit the same states by other
-    moves count twice)."""
-    parsed = parse_scenario(scenario, config)
-    found = _first_moves_many([parsed], config, None, "count")[0]
-    if found is None:
-        return None
-    length, counts = found
-    return length, {_split(j, 1 + len(parsed.followers)): float(counts[j]) for j in np.flatnonzero(counts)}
+    return np.array([f is not None for f in _first_moves_many(parsed, config, max_steps, masks=False)], bool)
 
 
 def surviving_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: GameConfig,
                                horizon: int) -> np.ndarray:
     """For every scenario, the joint actions that start ``horizon`` steps free of collisions and
     formation breaks (or that reach the destination sooner, with every step up to it free of them),
-    as ``(scenarios,)`` uint64 bit masks (bit ``joint index``, as ``shortest_first_moves``'s joint
-    actions). No deadline: the leader need not head for the destination. At most two followers."""
+    as ``(scenarios,)`` uint64 bit masks (bit ``joint index``, as ``shortest_first_moves_many``'s
+    joint actions). No deadline: the leader need not head for the destination. At most two followers."""
     if not isinstance(horizon, int) or isinstance(horizon, bool) or horizon < 1:
         raise ConfigError(f"horizon: {horizon!r} is not allowed; allowed: an integer >= 1")
-    return _first_moves_surviving(scenarios, config, np.full(len(scenarios), horizon), deadline=False)
-
-
-def viable_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: GameConfig, slack: int = 0,
-                            max_steps: Sequence[int] | None = None) -> np.ndarray:
-    """For every scenario, the joint actions that start a successful path at most ``slack`` steps longer
-    than a shortest one (and of at most ``max_steps[i]`` steps; default ``config.max_steps``), as
-    ``surviving_first_moves_many``'s bit masks; 0 where no path is left. With ``slack`` 0, those that start
-    a shortest path (``shortest_first_moves_many``'s). At most two followers."""
-    _mask_agents(config)
-    if not isinstance(slack, int) or isinstance(slack, bool) or slack < 0:
-        raise ConfigError(f"slack: {slack!r} is not allowed; allowed: an integer >= 0")
-    parsed = [parse_scenario(s, config) for s in scenarios]
-    limits = np.array([config.max_steps] * len(parsed) if max_steps is None else [int(m) for m in max_steps])
-    found = _first_moves_many(parsed, config, limits, "mask")
-    masks = np.array([0 if f is None else f[1] for f in found], np.uint64)
-    if slack == 0:
-        return masks
-    lost = np.array([f is None for f in found], bool)
-    deadlines = np.array([0 if f is None else min(f[0] + slack, limit) for f, limit in zip(found, limits)])
-    if not lost.all():
-        masks[~lost] = _first_moves_surviving([p for p, gone in zip(parsed, lost) if not gone], config,
-                                              deadlines[~lost], deadline=True)
-    return masks
+    return _first_moves_surviving(scenarios, config, np.full(len(scenarios), horizon))
 
 
 def _first_moves_surviving(scenarios: Sequence[dict | Scenario], config: GameConfig, steps: np.ndarray,
-                           deadline: bool, shortcut: bool = True) -> np.ndarray:
+                           shortcut: bool = True) -> np.ndarray:
     """The joint actions that start ``steps[i]`` steps free of failures or a success sooner, as bit
-    masks; with ``deadline`` the leader must reach the destination within ``steps[i]`` steps. Without a
-    deadline (and with ``shortcut``), the first moves that a lockstep continuation shows safe
+    masks. With ``shortcut``, the first moves that a lockstep continuation shows safe
     (``_lockstep_survivors``) are not searched: the search starts from the others alone."""
     n_agents = _mask_agents(config)
     parsed = [parse_scenario(s, config) for s in scenarios]
@@ -167,7 +123,7 @@ def _first_moves_surviving(scenarios: Sequence[dict | Scenario], config: GameCon
     board = _Board(config)
     zones = _ObstacleFuture(config, parsed, board).zones(int(steps.max()))
     layer = np.array([[r * board.width + c for r, c in (p.leader, *p.followers)] for p in parsed], np.int32)
-    shown = _lockstep_survivors(board, zones, layer, steps) if shortcut and not deadline else None
+    shown = _lockstep_survivors(board, zones, layer, steps) if shortcut else None
     if shown is not None:
         safe |= shown
     owner = np.arange(len(parsed))
@@ -175,9 +131,7 @@ def _first_moves_surviving(scenarios: Sequence[dict | Scenario], config: GameCon
     dedupe = _Deduplicator(board, n_agents, len(parsed))
     n_cells = board.height * board.width
     for t in range(int(steps.max())):
-        # with a deadline the leader must still reach the destination in time (then the last step lands on it)
-        steps_left = steps[owner] - t - 1 if deadline else config.max_steps
-        parent, joint, cells = _successors(board, layer, zones[:, t + 1].reshape(-1), steps_left,
+        parent, joint, cells = _successors(board, layer, zones[:, t + 1].reshape(-1), config.max_steps,
                                            offset=owner * n_cells)
         owner = owner[parent]
         if firsts is None and shown is not None:  # the first moves shown safe already need no search
@@ -268,8 +222,8 @@ def _first_found(search, parsed: Scenario, config: GameConfig):
     return None
 
 
-def _first_moves_many(parsed: list[Scenario], config: GameConfig, max_steps: Sequence[int] | None, carry: str
-                      ) -> list[tuple[int, Any] | None]:
+def _first_moves_many(parsed: list[Scenario], config: GameConfig, max_steps: Sequence[int] | None, masks: bool
+                      ) -> list[tuple[int, int | None] | None]:
     """``_search_first_moves`` of many scenarios with growing deadlines, as ``_first_found`` runs
     ``_search``: at each rung of the deadline ladders, one search over every scenario still
     unanswered whose ladder has that rung, each with its own deadline."""
@@ -278,7 +232,7 @@ def _first_moves_many(parsed: list[Scenario], config: GameConfig, max_steps: Seq
         raise ConfigError(f"max_steps: got {len(limits)} limits for {len(parsed)} scenarios")
     bounds = [_steps_to_go(p.leader, config) for p in parsed]
     ladders = [_deadlines(b, limit) if b <= limit else [] for b, limit in zip(bounds, limits)]
-    found: list[tuple[int, Any] | None] = [None] * len(parsed)
+    found: list[tuple[int, int | None] | None] = [None] * len(parsed)
     if not any(ladders):
         return found
     board = _Board(config)
@@ -289,7 +243,7 @@ def _first_moves_many(parsed: list[Scenario], config: GameConfig, max_steps: Seq
         if not members:
             break
         deadlines = np.array([ladders[i][rung] for i in members])
-        answers = _search_first_moves(board, zones[members, : deadlines.max() + 1], starts[members], deadlines, carry)
+        answers = _search_first_moves(board, zones[members, : deadlines.max() + 1], starts[members], deadlines, masks)
         for i, answer in zip(members, answers):
             found[i] = answer
     return found
@@ -395,54 +349,43 @@ def _search(board: _Board, zones: np.ndarray, start: tuple, deadline: int) -> li
 
 
 def _search_first_moves(board: _Board, zones: np.ndarray, starts: np.ndarray, deadlines: np.ndarray,
-                        carry: str = "mask") -> list[tuple[int, Any] | None]:
+                        masks: bool = True) -> list[tuple[int, int | None] | None]:
     """``_search`` of several scenarios at once (``zones[k]``, ``starts[k]`` and ``deadlines[k]``:
-    scenario k's zones, its agents' cells and its deadline), each keeping, for every state of a
-    layer, what it needs of the paths reaching it, merged over duplicates: ``carry="mask"``, the
-    set of their first joint actions (a bit mask); ``"count"``, how many reach it by each first
-    joint action; ``"none"``, nothing. Per scenario ``(length, what)`` of the first layer with a
-    success, ``what`` over all the successes in it (the mask, the counts of shortest successful
-    paths by first joint action, or None), or None where no success comes within its deadline."""
+    scenario k's zones, its agents' cells and its deadline). With ``masks``, every state of a layer
+    carries the set of the first joint actions of the paths reaching it (a bit mask), merged over
+    duplicates. Per scenario ``(length, mask)`` of the first layer with a success, ``mask`` over all
+    the successes in it (None without ``masks``), or None where no success comes within its deadline."""
     n_scenarios, n_agents = starts.shape
-    n_joint, n_cells = N_ACTIONS ** n_agents, board.height * board.width
+    n_cells = board.height * board.width
     layer, owner = starts, np.arange(n_scenarios)  # the states of a layer and the scenario of each
-    firsts = None  # per state of the layer: what it carries (None at the start)
-    found: list[tuple[int, Any] | None] = [None] * n_scenarios
+    firsts = None  # per state of the layer: its first joint actions (None at the start)
+    found: list[tuple[int, int | None] | None] = [None] * n_scenarios
     dedupe = _Deduplicator(board, n_agents, n_scenarios)
     for t in range(int(deadlines.max())):
         parent, joint, cells = _successors(board, layer, zones[:, t + 1].reshape(-1), deadlines[owner] - t - 1,
                                            offset=owner * n_cells)
         owner = owner[parent]
-        if carry == "none":
+        if not masks:
             carried = None
         elif firsts is not None:
             carried = firsts[parent]
-        elif carry == "count":
-            carried = np.zeros((len(joint), n_joint))
-            carried[np.arange(len(joint)), joint] = 1.0
         else:
             carried = np.uint64(1) << joint.astype(np.uint64)
         success = cells[:, 0] == board.destination
         if success.any():
             winners = owner[success]
-            if carry == "count":
-                totals = np.zeros((n_scenarios, n_joint))
-                np.add.at(totals, winners, carried[success])
-            elif carry == "mask":
+            if masks:
                 totals = np.zeros(n_scenarios, np.uint64)
                 np.bitwise_or.at(totals, winners, carried[success])
             for k in np.unique(winners):
-                found[k] = (t + 1, None if carry == "none" else totals[k] if carry == "count" else int(totals[k]))
+                found[k] = (t + 1, int(totals[k]) if masks else None)
             playing = ~np.isin(owner, winners)
             cells, owner = cells[playing], owner[playing]
             carried = None if carried is None else carried[playing]
         if len(cells) == 0:
             break
         keep, inverse = dedupe.groups(cells, owner)
-        if carry == "count":
-            firsts = np.zeros((len(keep), n_joint))
-            np.add.at(firsts, inverse, carried)
-        elif carry == "mask":
+        if masks:
             firsts = np.zeros(len(keep), np.uint64)
             np.bitwise_or.at(firsts, inverse, carried)
         layer, owner = cells[keep], owner[keep]

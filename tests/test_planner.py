@@ -12,10 +12,8 @@ from formation.game import BatchedGame, Scenario, parse_scenario
 from formation.planner import (
     lower_bound,
     paths_exist,
-    shortest_first_moves,
     shortest_first_moves_many,
     shortest_path,
-    shortest_path_counts,
 )
 
 TINY = dict(height=7, width=7, n_obstacles=2, max_steps=14)  # small enough for the brute force
@@ -157,7 +155,7 @@ def test_first_moves_are_exactly_the_joint_actions_that_start_a_shortest_path():
     checked = 0
     for setting, n_followers in ((1, 1), (2, 1), (1, 2)):
         for seed, scenario, config in tiny_scenarios(setting, 12, n_followers=n_followers, max_steps=10):
-            found = shortest_first_moves(scenario, config=config)
+            found = shortest_first_moves_many([scenario], config=config)[0]
             path = shortest_path(scenario, config=config)
             if path is None:
                 assert found is None
@@ -177,31 +175,6 @@ def test_first_moves_are_exactly_the_joint_actions_that_start_a_shortest_path():
             assert moves == expected, (setting, n_followers, seed)
             checked += 1
     assert checked >= 20
-
-
-def test_path_counts_start_where_shortest_paths_start_and_add_up_over_the_next_step():
-    """A joint action's count is the number of shortest paths left after playing it with the game
-    (1 where it wins at once), and the joint actions counted are those that start a shortest path."""
-    checked = 0
-    for setting in (1, 2):
-        for seed, scenario, config in tiny_scenarios(setting, 12, max_steps=10):
-            found, counts = shortest_first_moves(scenario, config=config), shortest_path_counts(scenario, config=config)
-            if found is None:
-                assert counts is None
-                continue
-            length, moves = found
-            assert counts[0] == length and sorted(counts[1]) == moves
-            probe = BatchedGame(config, 1)
-            for joint, count in counts[1].items():
-                probe.load([scenario])
-                probe.step(np.array([joint]))
-                if probe.done[0]:
-                    assert probe.success[0] and length == 1 and count == 1
-                    continue
-                rest = shortest_path_counts(probe.scenario(0), config=config)
-                assert rest[0] == length - 1 and sum(rest[1].values()) == count, (setting, seed, joint)
-            checked += 1
-    assert checked >= 15
 
 
 def played_states(setting: int, seeds, steps: int, **overrides) -> tuple[GameConfig, list[Scenario]]:
@@ -225,7 +198,8 @@ def test_many_scenarios_searched_at_once_get_each_their_own_answer(setting):
     too short for any path) answers for each what a search of it alone answers."""
     config, states = played_states(setting, range(6), 12)
     limits = [lower_bound(s, config) + (i % 5) * 2 - 1 for i, s in enumerate(states)]
-    alone = [shortest_first_moves(s, config=config.replace(max_steps=limit)) for s, limit in zip(states, limits)]
+    alone = [shortest_first_moves_many([s], config=config.replace(max_steps=limit))[0]
+             for s, limit in zip(states, limits)]
     assert shortest_first_moves_many(states, config=config, max_steps=limits) == alone
     assert list(paths_exist(states, config=config, max_steps=limits)) == [a is not None for a in alone]
     exist = [shortest_path(s, config=config.replace(max_steps=limit)) is not None for s, limit in zip(states, limits)]

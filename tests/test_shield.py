@@ -228,8 +228,8 @@ def test_first_moves_shown_safe_by_lockstep_continuations_need_no_search_and_cha
         scenarios += [game.scenario(i) for i in range(0, 400, 40)]
     for horizon in (1, 2, 6):
         steps = np.full(len(scenarios), horizon)
-        searched = _first_moves_surviving(scenarios, config, steps, deadline=False, shortcut=False)
-        assert np.array_equal(_first_moves_surviving(scenarios, config, steps, deadline=False), searched)
+        searched = _first_moves_surviving(scenarios, config, steps, shortcut=False)
+        assert np.array_equal(_first_moves_surviving(scenarios, config, steps), searched)
         assert np.array_equal(surviving_first_moves_many(scenarios, config=config, horizon=horizon), searched)
     # the continuations alone find most safe first moves, and only safe ones
     board = _Board(config)
