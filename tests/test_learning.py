@@ -26,7 +26,7 @@ def test_a_random_policy_almost_never_succeeds_on_the_small_board():
 
 
 def test_the_default_recipe_learns_the_small_board(tmp_path):
-    """About 3 min alone on 2 cores. Measured 88.5% and 91.5% at 8k env steps (seeds 0, 1; docs/TRAINING.md)."""
+    """About 3 min alone on 2 cores. Measured 88.5% and 91.5% at 8k env steps (seeds 0, 1; docs/lab/TRAINING.md)."""
     out = tmp_path / "small"
     env = dict(os.environ, RAY_ADDRESS="")  # a local Ray of its own, not a cluster the shell may know
     done = subprocess.run([sys.executable, "-m", "formation.cli", "train", SMALL, "--out", str(out)],
