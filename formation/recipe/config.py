@@ -95,7 +95,9 @@ class TrainSettings:
     exploring_starts: float = 0.0
     margin: float = 5.0  # DQfD large-margin loss weight towards the teacher's actions (labels)
     margin_gap: float = 5.0  # DQfD's l(a_E, a): how far above every other action the teacher's Q must stand
-    dagger: bool = True  # label every visited state with the teacher's joint action (DAgger)
+    # DAgger: label every visited state with the teacher's joint action, the first in a fixed lockstep order
+    # of those that start a shortest path (formation.recipe.teacher.lockstep_order)
+    dagger: bool = True
     # DAgger labels of an episode's first step (no motion on screen yet): keep a path for the most obstacle
     # velocities instead of the clairvoyant planner's choice (formation.recipe.teacher)
     robust_first_step: bool = True
