@@ -72,7 +72,7 @@ def shortest_path(scenario: dict | Scenario, setting: int | None = 1, *, config:
     elif overrides:
         raise ConfigError(f"config: give either config= or setting overrides, not both "
                           f"(got {', '.join(sorted(overrides))})")
-    return _first_found(_search, parse_scenario(scenario, config), config)
+    return _first_found(parse_scenario(scenario, config), config)
 
 
 def shortest_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: GameConfig,
@@ -207,8 +207,8 @@ def _mask_agents(config: GameConfig) -> int:
     return n_agents
 
 
-def _first_found(search, parsed: Scenario, config: GameConfig):
-    """Run ``search(board, zones, start, deadline)`` with growing deadlines; its first answer."""
+def _first_found(parsed: Scenario, config: GameConfig) -> list[tuple[int, ...]] | None:
+    """Run ``_search`` with growing deadlines; its first path."""
     start = (parsed.leader, *parsed.followers)
     bound = _steps_to_go(parsed.leader, config)
     if bound > config.max_steps:
@@ -216,7 +216,7 @@ def _first_found(search, parsed: Scenario, config: GameConfig):
     board = _Board(config)
     future = _ObstacleFuture(config, [parsed], board)
     for deadline in _deadlines(bound, config.max_steps):
-        found = search(board, future.zones(deadline)[0], start, deadline)
+        found = _search(board, future.zones(deadline)[0], start, deadline)
         if found is not None:
             return found
     return None
