@@ -132,6 +132,7 @@ def cmd_refit(args: argparse.Namespace) -> int:
     from formation.policy import CARD, export, load
     from formation.recipe.config import RunConfig, section_of
     from formation.recipe.safety_refit import check_refittable, refit
+    from formation.train import code_commit, hardware, now
 
     overrides = parse_overrides(args.set)
     for key in overrides:
@@ -149,7 +150,9 @@ def cmd_refit(args: argparse.Namespace) -> int:
           f"games, labels over {settings.horizon} steps, planner workers: {settings.workers or 'one per core'}",
           flush=True)
     earlier = policy.refit_report  # a refit of a refitted team keeps the earlier report on its card
+    started = now()
     report = refit(policy, settings, say=lambda line: print(line, flush=True))
+    report.update(started=started, ended=now(), commit=code_commit(), hardware=hardware())  # as training's
     policy.refit_report = {**report, "earlier": earlier} if earlier else report
     with writing_folder(out) as folder:  # the export appears whole or not at all
         export(policy, folder, half=args.half)
@@ -170,7 +173,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     import time
 
     from formation.evaluate import evaluate_policy, format_report
-    from formation.policy import load
+    from formation.policy import load, training_line
 
     for name in ("episodes", "workers"):
         value = getattr(args, name)
@@ -218,6 +221,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
           + (f", behind a shield of {args.shield} steps" if args.shield else "")
           + (f", veto above {policy.veto_threshold:g} (else {policy.veto_fallback.replace('_', ' ')})"
              if policy.learned_veto else ""))
+    if (trained := training_line(policy.training)) is not None:  # cards from before it have none: nothing
+        print(trained)
     print(format_report(report))
     if args.json:
         write_text_whole(args.json, json.dumps(report, indent=2) + "\n")

@@ -15,6 +15,13 @@ module's ``q_network`` state dict (``<module>.pt``) and a card, ``policy.json``,
 needed to rebuild the networks with torch alone. Greedy actions are the argmax of the Q-values, as
 in training's greedy evaluation (``FormationAlgorithm.play_greedy``).
 
+The card's ``training`` section says how the team was trained (``Policy.training``): the whole resolved
+run config, env steps and learner updates, wall time summed over ``--resume`` sessions, hardware, the
+code's commit, each session (from the run's ``training.json``), and the greedy evaluation the run ended
+with (its ``result.json``: env steps, seed, summary; None when the checkpoint is newer than it). Cards
+written before it (format 1 without the section, as the shipped ``policies/``) load with ``training``
+None; a run trained before ``training.json`` gives the config, counters and evaluation, the rest None.
+
 Bad input (a missing path, a folder that is no checkpoint, a damaged file) raises ``PolicyError``,
 a ``ConfigError`` with one line naming the problem.
 """
@@ -41,6 +48,7 @@ RL_MODULES = Path("checkpoint") / "learner_group" / "learner" / "rl_module"
 CHECKPOINT_STATE = Path("checkpoint") / "algorithm_state.pkl"  # the counters, among RLlib's own state
 DEFAULT_EVAL = {"episodes": 200, "seed": 1_000_000}
 DEFAULT_VETO_THRESHOLD = 0.5  # what training's heads are fitted to: the better guess of safe or not
+TRAINING = "training.json"  # a run folder's training record (``formation.train.training_record``)
 
 
 class PolicyError(ConfigError):
@@ -62,6 +70,7 @@ class Policy:
         self.eval_settings = dict(eval_settings or DEFAULT_EVAL)
         self.shield: Shield | None = None
         self.refit_report: dict | None = None  # what `formation refit` did to the safety heads, if it did
+        self.training: dict | None = None  # how it was trained (the card's ``training``); None if not known
         # greedy play keeps to the joint moves whose mean safe probability is above this (``within_veto``)
         self.veto_threshold = DEFAULT_VETO_THRESHOLD
         self.veto_fallback = VETO_FALLBACKS[0]  # where no joint move is above it (``within_veto``)
@@ -197,7 +206,8 @@ class Policy:
                 "agents": self.module_of, "source": self.source, "env_steps": self.env_steps,
                 "eval": dict(self.eval_settings), "veto_threshold": self.veto_threshold,
                 "veto_fallback": self.veto_fallback,
-                **({"refit": self.refit_report} if self.refit_report else {})}
+                **({"refit": self.refit_report} if self.refit_report else {}),
+                **({"training": self.training} if self.training else {})}
 
 
 def export(policy: Policy, out: str | Path, half: bool = False) -> Path:
@@ -263,19 +273,57 @@ def _load_run(run_dir: Path) -> Policy:
             raise PolicyError(f"checkpoint: {str(state_file)!r} is damaged or not a module state "
                               f"({type(err).__name__})") from None
         networks[module] = _with_weights(spec, weights, state_file)
-    return Policy(run.game, networks, specs, agent_modules, source=str(run_dir), env_steps=_env_steps(run_dir),
-                  eval_settings={"episodes": run.eval.episodes, "seed": run.eval.seed})
+    counters = _counters(run_dir)
+    policy = Policy(run.game, networks, specs, agent_modules, source=str(run_dir),
+                    env_steps=_env_steps(run_dir, counters),
+                    eval_settings={"episodes": run.eval.episodes, "seed": run.eval.seed})
+    policy.training = _training(run_dir, policy.env_steps, counters, run.eval.seed)
+    return policy
 
 
-def _env_steps(run_dir: Path) -> int | None:
+def _training(run_dir: Path, env_steps: int | None, counters: dict, seed: int) -> dict:
+    """The card's ``training`` section for a run folder: its config.yaml whole, the checkpoint's counters,
+    the training record (``training.json``), and result.json's evaluation where it is of this checkpoint."""
+    import yaml
+
+    config = yaml.safe_load((run_dir / "config.yaml").read_text())
+    record = _json_object(run_dir / TRAINING) or {}
+    result = _json_object(run_dir / "result.json")
+    evaluation = None
+    if result is not None and isinstance(result.get("greedy"), dict) and result.get("env_steps") == env_steps:
+        evaluation = {"env_steps": env_steps, "seed": result.get("seed", seed), "greedy": result["greedy"]}
+    updates = counters.get("updates", record.get("learner_updates"))
+    return {"config": config, "env_steps": env_steps, "learner_updates": None if updates is None else int(updates),
+            **{key: record.get(key) for key in ("wall_seconds", "started", "ended", "hardware")},
+            "commit": record.get("commit", "unknown"), "sessions": record.get("sessions", []),
+            "evaluation": evaluation}
+
+
+def _json_object(path: Path) -> dict | None:
+    try:
+        value = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return value if isinstance(value, dict) else None
+
+
+def _counters(run_dir: Path) -> dict:
+    """The counters the run's checkpoint saved ({} if it cannot be read)."""
+    try:
+        with (run_dir / CHECKPOINT_STATE).open("rb") as f:
+            return dict(pickle.load(f)["formation_counters"])
+    except (OSError, pickle.UnpicklingError, EOFError, KeyError, TypeError, ValueError, AttributeError,
+            ImportError):
+        return {}
+
+
+def _env_steps(run_dir: Path, counters: dict) -> int | None:
     """Env steps of the run's checkpoint (its saved counters); else result.json's, else the last
     metrics line's. result.json is written when a run ends, so after a resumed run was stopped it
     is older than the checkpoint."""
     try:
-        with (run_dir / CHECKPOINT_STATE).open("rb") as f:
-            return int(pickle.load(f)["formation_counters"]["env_steps"])
-    except (OSError, pickle.UnpicklingError, EOFError, KeyError, TypeError, ValueError, AttributeError,
-            ImportError):
+        return int(counters["env_steps"])
+    except (KeyError, TypeError, ValueError):
         pass
     try:
         return int(json.loads((run_dir / "result.json").read_text())["env_steps"])
@@ -337,6 +385,10 @@ def _load_export(folder: Path) -> Policy:
     policy = Policy(game, networks, {m: specs[m] for m in networks}, agent_modules, source=str(card.get("source")),
                     env_steps=env_steps, eval_settings=eval_settings)
     policy.refit_report = card.get("refit") if isinstance(card.get("refit"), dict) else None
+    training = card.get("training")
+    if not isinstance(training, dict | None):
+        raise PolicyError(f"export: {str(card_file)!r} has a training section that is not a JSON object")
+    policy.training = training
     threshold = card.get("veto_threshold", DEFAULT_VETO_THRESHOLD)
     if not (isinstance(threshold, int | float) and not isinstance(threshold, bool) and 0.0 <= threshold < 1.0):
         raise PolicyError(f"export: {str(card_file)!r} has veto_threshold {threshold!r}; allowed: a number in [0, 1)")
@@ -347,6 +399,39 @@ def _load_export(folder: Path) -> Policy:
                           f"{', '.join(VETO_FALLBACKS)}")
     policy.veto_fallback = fallback
     return policy
+
+
+def training_line(training: dict | None) -> str | None:
+    """One line of how a policy was trained, e.g. ``trained: 200,064 env steps in 3.2 h on AMD EPYC 7B13
+    (16 CPUs), NVIDIA H100 x1, 1 Ray node; commit 419508c``; None without a training section."""
+    if not training:
+        return None
+    steps = training.get("env_steps")
+    line = f"trained: {steps:,} env steps" if isinstance(steps, int) else "trained: unknown env steps"
+    seconds, sessions = training.get("wall_seconds"), training.get("sessions") or [{}]
+    if isinstance(seconds, int | float):
+        # a run resumed from before training.json was written: its first recorded session did not start at 0
+        partial = isinstance(sessions[0], dict) and bool((sessions[0].get("env_steps") or [0])[0])
+        line += " in " + ("over " if partial else "") + (f"{seconds / 3600:.1f} h" if seconds >= 3600
+                                                        else f"{seconds / 60:.1f} min")
+    else:
+        line += " in unrecorded time"
+    line += f" on {_hardware_words(training.get('hardware'))}"
+    commit = str(training.get("commit") or "unknown")
+    sha, dirty, _ = commit.partition("-dirty")
+    return line + f"; commit {sha[:12] if sha != 'unknown' else sha}{dirty}"
+
+
+def _hardware_words(hw: Any) -> str:
+    if not isinstance(hw, dict):
+        return "unrecorded hardware"
+    words = [f"{hw.get('cpu') or 'unknown CPU'} ({hw.get('cpus')} CPUs)"]
+    gpus = hw.get("gpus") or 0
+    words.append(f"{hw.get('gpu')} x{gpus:g}" if hw.get("gpu") else "no GPU")
+    nodes = hw.get("ray_nodes")
+    if nodes:
+        words.append(f"{nodes} Ray node{'s' if nodes != 1 else ''}")
+    return ", ".join(words)
 
 
 def _with_weights(spec: NetworkSpec, weights: Any, where: Path) -> DuelingQNetwork:

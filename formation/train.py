@@ -2,8 +2,11 @@
 metrics (JSON lines and TensorBoard), checkpoints, and resume.
 
 Run folder (``--out``): ``config.yaml`` (the resolved config), ``metrics.jsonl`` (one line per
-iteration), ``tb/`` (TensorBoard), ``checkpoint/`` (RLlib's own format, the latest), and
-``result.json`` (the final greedy evaluation). ``--out`` may also be a storage URI (``formation.storage``).
+iteration), ``tb/`` (TensorBoard), ``checkpoint/`` (RLlib's own format, the latest), ``result.json``
+(the final greedy evaluation, its seed and env steps) and ``training.json`` (how the checkpoint was
+trained: env steps, learner updates, wall time summed over ``--resume`` sessions, hardware, the code's
+commit, each session's start and end; written with every checkpoint, so it describes that checkpoint).
+A policy card (``formation.policy``) carries both. ``--out`` may also be a storage URI (``formation.storage``).
 
 What a failure costs: docs/FAULTS.md.
 """
@@ -13,11 +16,14 @@ from __future__ import annotations
 import json
 import math
 import os
+import platform
 import shutil
 import signal
+import subprocess
 import sys
 import time
 from collections.abc import Callable
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +35,7 @@ from formation.recipe.config import RunConfig
 from formation.storage import RemoteRun, is_uri
 
 CHECKPOINT = "checkpoint"
+TRAINING = "training.json"  # the training record (``training_record``)
 # what --set may change when resuming: how long to train, a fine-tuning phase (a lower lr, and a
 # replay refilled to learning_starts records before the first update, as it starts empty), and where it
 # runs (a run started on a cluster or a GPU machine goes on on a laptop, and the other way round), and the
@@ -186,6 +193,9 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
                               "or choose another --out")
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "config.yaml").write_text(yaml.safe_dump(run.to_dict(), sort_keys=False))
+    earlier = read_training_record(out_dir) if resume else None
+    session = {"started": now(), "commit": code_commit()}
+    session_clock = time.monotonic()  # the session's wall time counts Ray's start and the restore too
 
     previous_handler = signal.signal(signal.SIGTERM, _raise_stop)
     try:
@@ -202,9 +212,15 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
 
     writer = SummaryWriter(str(out_dir / "tb"))
     metrics_file = (out_dir / "metrics.jsonl").open("a")
+    session.update(hardware=hardware(), env_steps=[algo.counters["env_steps"]] * 2)
 
     def save(algo) -> None:
         save_checkpoint(algo, out_dir)
+        session.update(ended=now(), seconds=round(time.monotonic() - session_clock, 3),
+                       env_steps=[session["env_steps"][0], algo.counters["env_steps"]])
+        writing = out_dir / f"{TRAINING}.writing"  # whole or not at all, like the checkpoint
+        writing.write_text(json.dumps(training_record(earlier, session, algo.counters), indent=2) + "\n")
+        writing.replace(out_dir / TRAINING)
         if remote is not None:
             metrics_file.flush()
             writer.flush()
@@ -233,7 +249,7 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         summary = algo.last_eval = final["summary"]
         gif = write_episodes_gif(out_dir / "greedy.gif", final["screens"]) if final["screens"] else None
         (out_dir / "result.json").write_text(json.dumps({"env_steps": algo.counters["env_steps"],
-                                                         "greedy": summary}, indent=2))
+                                                         "seed": run.eval.seed, "greedy": summary}, indent=2))
         save(algo)
     except RunFailed as err:  # nothing left to save: the last checkpoint stays as it was
         raise RunFailed(f"{err}; the last checkpoint, {kept_in}, is kept: continue with --resume") from None
@@ -253,6 +269,97 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         if gif is not None:
             print(f"greedy episodes: {f'{out}/{gif.name}' if remote is not None else gif}")
     return summary
+
+
+# ---------------------------------------------------------------------- the training record
+def training_record(earlier: dict | None, session: dict, counters: dict) -> dict:
+    """``training.json``: the ``earlier`` record (None for a new run) with this ``session`` (its start and
+    end, seconds, env steps from and to, commit, hardware) added or brought up to date, and the counters
+    of the checkpoint just saved. Wall time is the sum of the sessions' seconds: a resumed run adds to it."""
+    ordered = {k: session[k] for k in ("started", "ended", "seconds", "env_steps", "commit", "hardware")}
+    sessions = [*(earlier or {}).get("sessions", []), ordered]
+    return {"env_steps": int(counters["env_steps"]), "learner_updates": int(counters["updates"]),
+            "wall_seconds": round(sum(s["seconds"] for s in sessions), 3),
+            "started": sessions[0]["started"], "ended": session["ended"],
+            "commit": session["commit"], "hardware": session["hardware"], "sessions": sessions}
+
+
+def read_training_record(out_dir: Path) -> dict | None:
+    """The run's ``training.json``; None if it has none (a run trained before there was one) or it is
+    unreadable: a resume then records its own sessions only, and never fails for it."""
+    try:
+        record = json.loads((out_dir / TRAINING).read_text())
+    except (OSError, ValueError):
+        return None
+    if not (isinstance(record, dict) and isinstance(record.get("sessions"), list)
+            and all(isinstance(s, dict) and isinstance(s.get("seconds"), int | float) for s in record["sessions"])):
+        return None
+    return record
+
+
+def now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def code_commit() -> str:
+    """The git commit of the code running: ``git rev-parse HEAD`` of the repository the package is tracked
+    in, ``<sha>-dirty`` when its tracked files have changes; ``unknown`` when it is in none (an installed
+    package) or git is missing. Never raises: no run fails for it."""
+    package = Path(__file__).resolve().parent
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(package), *args], capture_output=True, text=True, timeout=20,
+                              check=True).stdout.strip()
+
+    try:
+        git("ls-files", "--error-unmatch", "__init__.py")  # tracked: not a copy in site-packages inside some repo
+        sha = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return f"{sha}-dirty" if dirty else sha
+
+
+def hardware() -> dict[str, Any]:
+    """What a session ran on: the driver's CPU, the Ray cluster (nodes, CPUs, GPUs and their kind; None
+    when Ray is not running, as in ``formation refit``) and the versions. GPUs are named by Ray's
+    ``accelerator_type`` resources, else by torch where Ray is not running; the driver claims no GPU."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    import torch
+
+    info: dict[str, Any] = {"cpu": _cpu_model(), "cpus": os.cpu_count(), "gpu": None, "gpus": 0,
+                            "ray_nodes": None, "ray_cpus": None, "torch": torch.__version__, "ray": None,
+                            "python": platform.python_version(), "platform": platform.platform()}
+    try:
+        info["ray"] = version("ray")
+    except PackageNotFoundError:
+        pass
+    ray = sys.modules.get("ray")
+    if ray is not None and ray.is_initialized():
+        try:
+            resources = ray.cluster_resources()
+            info["ray_nodes"] = sum(1 for node in ray.nodes() if node.get("Alive"))
+            info["ray_cpus"] = resources.get("CPU", 0.0)
+            info["gpus"] = resources.get("GPU", 0.0)
+            kinds = sorted(k.partition(":")[2] for k in resources if k.startswith("accelerator_type:"))
+            info["gpu"] = ", ".join(kinds) or ("GPU" if info["gpus"] else None)
+        except Exception:  # a cluster that cannot be asked: the driver's own entries stay
+            pass
+    elif torch.cuda.is_available():
+        info["gpus"] = torch.cuda.device_count()
+        info["gpu"] = torch.cuda.get_device_name(0)
+    return info
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.partition(":")[2].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown"
 
 
 def _start(run: RunConfig, out_dir: Path, resume: bool):
