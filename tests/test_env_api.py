@@ -276,7 +276,7 @@ def test_batched_core_agrees_with_single_envs(args):
 @pytest.fixture(scope="module")
 def rllib_env():
     pytest.importorskip("ray.rllib")
-    from formation.env.rllib import FormationMultiAgentEnv, register
+    from formation.rllib.env import FormationMultiAgentEnv, register
 
     register()
     return FormationMultiAgentEnv

@@ -1,6 +1,6 @@
 """Views of the game for RL libraries: PettingZoo's ``formation_v1`` (parallel and AEC; its card is
-the docstring of ``formation.env.pettingzoo``) and, in ``formation.env.rllib``, RLlib's
-``MultiAgentEnv`` (imported separately so that PettingZoo users need no Ray)."""
+the docstring of ``formation.env.pettingzoo``). RLlib's ``MultiAgentEnv`` is ``formation.rllib.env``: nothing
+here imports Ray."""
 
 from __future__ import annotations
 

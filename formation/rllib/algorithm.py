@@ -7,31 +7,47 @@ per env step), forwards weight references and reports metrics.
 
 ``build_algorithm_config(run)`` turns a ``RunConfig`` into the RLlib config: one RLModule per
 policy (``leader``, ``follower`` or ``follower_i``) in a MultiRLModuleSpec, mapped from agents by
-``policy_mapping_fn``.
+``policy_mapping_fn``. That config is the one source of truth: its RLlib fields that name a run-config key
+(``RUN_FIELDS``, ``epsilon``) are that key, ``config.run`` is the run config with them merged in, and an RLlib option
+the formation path does not honour is refused (``NOT_HONOURED``, EnvRunner callbacks: ``ENV_RUNNER_HOOKS``).
+Results carry RLlib's standard keys (``env_runners``, ``evaluation``, ``learners``); docs/USAGE.md "Tune".
 """
 
 from __future__ import annotations
 
+import math
 import pickle
 import time
+import weakref
+from typing import Any
 
-import gymnasium as gym
 import ray
 from ray.rllib.algorithms.dqn import DQN, DQNConfig
+from ray.rllib.callbacks.utils import make_callback
 from ray.rllib.core import COMPONENT_RL_MODULE
 from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
 from ray.rllib.core.rl_module.rl_module import RLModuleSpec
+from ray.rllib.utils.from_config import NotProvided
 from ray.rllib.utils.metrics import (
     ENV_RUNNER_RESULTS,
+    EPISODE_AGENT_RETURN_MEAN,
+    EPISODE_LEN_MEAN,
+    EPISODE_MODULE_RETURN_MEAN,
+    EPISODE_RETURN_MAX,
+    EPISODE_RETURN_MEAN,
+    EPISODE_RETURN_MIN,
+    EVALUATION_RESULTS,
     LEARNER_RESULTS,
+    NUM_ENV_STEPS_SAMPLED,
     NUM_ENV_STEPS_SAMPLED_LIFETIME,
+    NUM_EPISODES,
     NUM_EPISODES_LIFETIME,
     WEIGHTS_SEQ_NO,
 )
 
-from formation.config import RunFailed
+from formation.config import ConfigError, RunFailed
 from formation.evaluate import play_greedy
-from formation.recipe.config import RunConfig
+from formation.recipe.config import RunConfig, TrainSettings
 from formation.recipe.rollout import STARTS
 from formation.recipe.team import answers_leader, module_of_agent, network_specs, spaces_of
 from formation.rllib.learner import FormationLearner
@@ -49,29 +65,177 @@ def shared_follower_mapping_fn(agent_id, episode=None, **kwargs) -> str:
     return "leader" if agent_id == "leader" else "follower"
 
 
-class FormationDQNConfig(DQNConfig):
+# -- one source of truth: the RLlib fields that name a run-config key hold that key's value
+# RLlib's field -> the run config's (section, key). The run config's other keys live in ``formation_run``; both
+# paths honour these fields as RLlib documents them (the formation path counts target_network_update_freq in
+# learner updates, as train.target_update_every does; the stock path in env steps, so it is not mapped there).
+RUN_FIELDS: dict[str, tuple[str, str]] = {
+    "lr": ("train", "lr"),
+    "gamma": ("train", "gamma"),
+    "n_step": ("train", "n_step"),
+    "train_batch_size": ("train", "batch_size"),
+    "target_network_update_freq": ("train", "target_update_every"),
+    "grad_clip": ("train", "grad_clip"),
+    "num_steps_sampled_before_learning_starts": ("train", "learning_starts"),
+    "seed": ("train", "seed"),
+    "num_env_runners": ("resources", "num_rollout_actors"),
+    "num_envs_per_env_runner": ("resources", "games_per_actor"),
+    "num_cpus_per_env_runner": ("resources", "cpus_per_rollout_actor"),
+    "num_gpus_per_learner": ("resources", "num_gpus_per_learner"),
+}
+EPSILON_KEYS = ("epsilon_start", "epsilon_end", "epsilon_env_steps")  # RLlib's ``epsilon`` schedule
+
+# RLlib options the formation path does not honour, and where their equivalent is set; a change is refused
+NOT_HONOURED: dict[str, str] = {
+    "double_q": "its target is always the double DQN target (formation.recipe.loss)",
+    "dueling": "its networks are always dueling (train.hidden, train.channels)",
+    "tau": "the target network is copied whole every train.target_update_every updates "
+           "(target_network_update_freq)",
+    "num_atoms": "its Q-values are not distributional",
+    "v_min": "its Q-values are not distributional",
+    "v_max": "its Q-values are not distributional",
+    "noisy": "it explores epsilon-greedily: train.epsilon_start, epsilon_end, epsilon_env_steps, exploration",
+    "sigma0": "it explores epsilon-greedily: train.epsilon_start, epsilon_end, epsilon_env_steps, exploration",
+    "hiddens": "the networks are the run config's: train.hidden, train.channels, train.leader_window",
+    "td_error_loss_fn": "its loss is formation.recipe.loss.dqn_loss (Huber TD error plus the large margin: "
+                        "train.margin, margin_gap)",
+    "categorical_distribution_temperature": "its Q-values are not distributional",
+    "adam_epsilon": "the learner's Adam keeps torch's default eps",
+    "training_intensity": "learner updates per env step are train.replay_ratio",
+    "replay_buffer_config": "its replay is an actor of its own: train.replay_capacity, train.prioritized, "
+                            "resources.num_replay_shards",
+    "store_buffer_in_checkpoints": "its replay is not checkpointed; a resumed run refills it",
+    "before_learn_on_batch": "the learner pulls its batches from the replay itself",
+    "burn_in_len": "its networks have no memory",
+    "rollout_fragment_length": "a rollout actor plays train.steps_per_sample steps of its games per sample",
+    "num_learners": "it has one learner (resources.num_gpus_per_learner places it)",
+    "env": "the game is the run config's game section",
+    "env_config": "the game is the run config's game section",
+    "evaluation_interval": "greedy evaluation runs every eval.every_env_steps env steps on eval.episodes games, "
+                           "reported under result['evaluation']",
+    "evaluation_num_env_runners": "greedy evaluation runs in the algorithm's process (eval.episodes)",
+}
+# EnvRunner hooks: the formation path's rollout actors play batched games, not RLlib episodes
+ENV_RUNNER_HOOKS = ("on_environment_created", "on_episode_created", "on_episode_start", "on_episode_step",
+                    "on_episode_end", "on_sample_end", "on_sub_environment_created", "on_postprocess_trajectory")
+
+
+def _unresolved(value) -> bool:
+    """A Tune search space (``tune.grid_search`` dict, ``tune.uniform`` domain): Tune resolves it per trial."""
+    return isinstance(value, dict) or type(value).__module__.startswith("ray.tune")
+
+
+def epsilon_keys(value) -> dict[str, Any]:
+    """RLlib's ``epsilon`` (a number, or ``[(0, start), (env_steps, end)]``) as the run config's keys."""
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        return {"epsilon_start": value, "epsilon_end": value}
+    points = list(value) if isinstance(value, list | tuple) else []
+    if len(points) == 2 and all(isinstance(p, list | tuple) and len(p) == 2 for p in points) and points[0][0] == 0:
+        (_, start), (steps, end) = points
+        return {"epsilon_start": start, "epsilon_end": end, "epsilon_env_steps": steps}
+    raise ConfigError(f"epsilon: {value!r} is not allowed on the formation path; allowed: a number, or "
+                      "[(0, start), (env_steps, end)] (train.epsilon_start, epsilon_end, epsilon_env_steps)")
+
+
+_FROZEN_RUNS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # config -> its run, once frozen
+
+
+class RunConfigFields:
+    """An RLlib config whose fields that name a run-config key (``run_fields``, and ``epsilon``) hold that key, and
+    ``formation_run`` the run config's other keys: ``run`` merges them, so ``config.training(lr=...)``, a Tune search
+    space and ``build_algorithm_config(run)`` all set one value, which rollout actors, learner, replay and evaluation
+    read. An invalid value is the run config's one-line ``ConfigError``, when it is set."""
+
+    run_fields = RUN_FIELDS
+
+    @property
+    def formation_run(self) -> dict:
+        """The run config as a dict (``RunConfig.to_dict``) with the RLlib fields merged in (Tune's search spaces
+        left out); not validated."""
+        values = {k: dict(v) if isinstance(v, dict) else v for k, v in self._formation_run.items()}
+        for attr, (section, key) in self.run_fields.items():
+            if not _unresolved(getattr(self, attr)):
+                values.setdefault(section, {})[key] = getattr(self, attr)
+        if not _unresolved(self.epsilon):
+            values.setdefault("train", {}).update(epsilon_keys(self.epsilon))
+        return values
+
+    @formation_run.setter
+    def formation_run(self, values: dict) -> None:
+        """The run config (a ``RunConfig.to_dict``): the keys RLlib names go to RLlib's fields, the rest here."""
+        values = {k: dict(v) if isinstance(v, dict) else v for k, v in values.items()}
+        fields = {}
+        for attr, (section, key) in self.run_fields.items():
+            if key in values.get(section, {}):
+                fields[attr] = values[section].pop(key)
+        train = values.get("train", {})
+        if any(k in train for k in EPSILON_KEYS):
+            t = RunConfig.from_dict({"train": {k: train.pop(k) for k in EPSILON_KEYS if k in train}}).train
+            fields["epsilon"] = [(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)]
+        DQNConfig.__setattr__(self, "_formation_run", values)
+        for attr, value in fields.items():
+            DQNConfig.__setattr__(self, attr, value)
+        self.run  # noqa: B018 (validates the whole)
+
+    @property
+    def run(self) -> RunConfig:
+        """The run config, validated (once, for a frozen config: the algorithm's, learner's and rollout actors')."""
+        if self._is_frozen and self in _FROZEN_RUNS:
+            return _FROZEN_RUNS[self]
+        for attr in (*self.run_fields, "epsilon"):
+            if _unresolved(getattr(self, attr)):
+                raise ConfigError(f"{attr}: {getattr(self, attr)!r} is a Tune search space; tune.Tuner resolves it")
+        run = RunConfig.from_dict(self.formation_run)
+        if self._is_frozen:
+            _FROZEN_RUNS[self] = run
+        return run
+
+    def __setattr__(self, key, value):
+        if key in (*self.run_fields, "epsilon") and "_formation_run" in self.__dict__ and not _unresolved(value):
+            values = self.formation_run  # validate the new value as the run config's key
+            if key == "epsilon":
+                values["train"].update(epsilon_keys(value))
+            else:
+                section, name = self.run_fields[key]
+                values[section][name] = value
+            RunConfig.from_dict(values)
+        super().__setattr__(key, value)
+
+
+class FormationDQNConfig(RunConfigFields, DQNConfig):
+    """The formation path's config. Its RLlib fields ``RUN_FIELDS`` and ``epsilon`` are the run config's keys (one
+    value: ``run`` merges them in); a change to an option the path does not honour (``NOT_HONOURED``), or callbacks
+    on EnvRunner hooks (``ENV_RUNNER_HOOKS``), is refused in one line."""
+
     def __init__(self, algo_class=None):
         super().__init__(algo_class=algo_class or FormationDQN)
-        self.formation_run: dict = RunConfig().to_dict()
         # our replay lives in its own actor: no local buffer in the driver
         self.replay_buffer_config = {**self.replay_buffer_config, "no_local_replay_buffer": True}
+        self.env_runners(env_runner_cls=RolloutActor, create_local_env_runner=False,
+                         max_requests_in_flight_per_env_runner=2)
+        self.learners(num_learners=1)
+        self.formation_run = RunConfig().to_dict()
+
+    def __setattr__(self, key, value):
+        if "_formation_run" in self.__dict__ and not self.__dict__.get("in_evaluation"):
+            if key in NOT_HONOURED and key in self.__dict__ and not _same(value, self.__dict__[key]):
+                raise _not_honoured(key, value, repr(self.__dict__[key]))
+            if key == "_train_batch_size_per_learner" and value is not None:  # one learner: the same number
+                key = "train_batch_size"
+            _check_callbacks(key, value)
+        super().__setattr__(key, value)
+
+    def training(self, *, replay_buffer_config=NotProvided, **kwargs):
+        # DQNConfig merges a replay_buffer_config into its own in place: compare before it does
+        if replay_buffer_config is not NotProvided and "_formation_run" in self.__dict__ and any(
+                not _same(value, self.replay_buffer_config.get(key)) for key, value in replay_buffer_config.items()):
+            raise _not_honoured("replay_buffer_config", replay_buffer_config, "the default")
+        return super().training(replay_buffer_config=replay_buffer_config, **kwargs)
 
     def get_default_learner_class(self):
         return FormationLearner
 
-    @property
-    def run(self) -> RunConfig:
-        return RunConfig.from_dict(self.formation_run)
-
     # fields the learner reads through its config
-    @property
-    def n_step(self) -> int:
-        return self.run.train.n_step
-
-    @n_step.setter
-    def n_step(self, value) -> None:  # DQNConfig sets a default at construction
-        pass
-
     @property
     def margin(self) -> float:
         return self.run.train.margin
@@ -89,60 +253,83 @@ class FormationDQNConfig(DQNConfig):
         return self.run.train.prioritized
 
 
+def _not_honoured(key: str, value, allowed: str) -> ConfigError:
+    return ConfigError(f"{key}={value!r}: the formation path does not honour it; {NOT_HONOURED[key]} (docs/CONFIG.md); "
+                       f"allowed: {allowed}, or train.path: stock (RLlib's own DQN)")
+
+
+def _same(a, b) -> bool:
+    try:
+        return bool(a == b)
+    except Exception:  # e.g. arrays
+        return a is b
+
+
+def _check_callbacks(key: str, value) -> None:
+    """Refuse, in one line, callbacks on EnvRunner hooks: they cannot fire on the formation path's rollout actors."""
+    from ray.rllib.callbacks.callbacks import RLlibCallback
+
+    hint = ("cannot fire on the formation path's rollout actors (they play batched games, not RLlib episodes); "
+            "read result['env_runners'] and result['explore'] in on_train_result instead")
+    if key.startswith("callbacks_on_") and key[len("callbacks_"):] in ENV_RUNNER_HOOKS and value is not None:
+        raise ConfigError(f"callbacks({key[len('callbacks_'):]}=...): {hint}")
+    if key == "callbacks_class" and value is not None:
+        for cls in value if isinstance(value, list | tuple) else [value]:
+            if not isinstance(cls, type):
+                continue
+            for hook in ENV_RUNNER_HOOKS:
+                if getattr(cls, hook, None) is not getattr(RLlibCallback, hook, None):
+                    raise ConfigError(f"callbacks: {cls.__name__}.{hook} {hint}")
+
+
 def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLModuleSpec]:
-    """One DuelingQModule spec per policy: its network (``formation.recipe.team.network_specs``) and the
-    exploration schedule."""
-    t = run.train
+    """One DuelingQModule spec per policy (its network: ``formation.recipe.team.network_specs``); every module acts in
+    the env's actions, 0..3 (``DuelingQModule``). The exploration schedule is the config's ``epsilon``."""
     obs_space, act_space = spaces_of(run)
-    epsilon = [(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)]
-    return {m: RLModuleSpec(module_class=DuelingQModule, observation_space=obs_space,
-                            action_space=gym.spaces.Discrete(16) if spec.answers_leader else act_space,
-                            model_config={"network": spec.to_dict(), "epsilon": epsilon},
-                            inference_only=inference_only)
+    return {m: RLModuleSpec(module_class=DuelingQModule, observation_space=obs_space, action_space=act_space,
+                            model_config={"network": spec.to_dict()}, inference_only=inference_only)
             for m, spec in network_specs(run).items()}
 
 
-class StockFormationDQNConfig(DQNConfig):
+class StockFormationDQNConfig(RunConfigFields, DQNConfig):
+    """RLlib's DQN on the RLlib view of the game; its fields that mean what the run config's keys mean are those
+    keys (its target_network_update_freq counts env steps, the run config's learner updates: not one of them)."""
+
+    run_fields = {k: v for k, v in RUN_FIELDS.items() if k != "target_network_update_freq"}
+
     def __init__(self, algo_class=None):
         super().__init__(algo_class=algo_class or StockFormationDQN)
-        self.formation_run: dict = RunConfig().to_dict()
+        self.formation_run = RunConfig(train=TrainSettings(**STOCK_TRAIN)).to_dict()
 
-    @property
-    def run(self) -> RunConfig:
-        return RunConfig.from_dict(self.formation_run)
+
+# the run config's keys that train.path: stock requires
+STOCK_TRAIN = dict(path="stock", shaping=0.0, demonstrations=0.0, margin=0.0, prioritized=False, dagger=False,
+                   follower_answers_leader=False)
 
 
 def build_stock_config(run: RunConfig) -> StockFormationDQNConfig:
     """RLlib's DQN on the RLlib view of the game, with our modules and the same replay ratio."""
-    from formation.env.rllib import register
+    from formation.rllib.env import register
 
     t, res = run.train, run.resources
     mapping = shared_follower_mapping_fn if t.followers_share_policy else policy_mapping_fn
-    fragment = t.steps_per_sample
     config = (
         StockFormationDQNConfig()
         .environment(register(), env_config=run.game.to_dict())
-        .env_runners(num_env_runners=res.num_rollout_actors, num_cpus_per_env_runner=res.cpus_per_rollout_actor,
-                     num_envs_per_env_runner=res.games_per_actor, rollout_fragment_length=fragment,
-                     create_local_env_runner=res.num_rollout_actors == 0)
-        .learners(num_learners=0 if res.num_gpus_per_learner == 0 else 1, num_gpus_per_learner=res.num_gpus_per_learner)
+        .env_runners(rollout_fragment_length=t.steps_per_sample, create_local_env_runner=res.num_rollout_actors == 0)
+        .learners(num_learners=0 if res.num_gpus_per_learner == 0 else 1)
         .multi_agent(policies=set(module_specs(run)), policy_mapping_fn=mapping)
         .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs=module_specs(run)))
-        .training(lr=t.lr, gamma=t.gamma, train_batch_size=t.batch_size,
-                  n_step=t.n_step, double_q=True, dueling=True,
-                  target_network_update_freq=int(t.target_update_every / t.replay_ratio), tau=1.0,
-                  grad_clip=t.grad_clip, grad_clip_by="global_norm",
-                  num_steps_sampled_before_learning_starts=t.learning_starts,
+        .training(double_q=True, dueling=True, tau=1.0, grad_clip_by="global_norm",
+                  target_network_update_freq=int(t.target_update_every / t.replay_ratio),
                   # RLlib samples once from every runner, then runs training_intensity / native ratio
                   # updates, where its native ratio counts one runner more than there are
                   training_intensity=t.replay_ratio * t.batch_size * max(res.num_rollout_actors, 1)
                   / (res.num_rollout_actors + 1),
-                  epsilon=[(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)],
                   replay_buffer_config={"type": "MultiAgentEpisodeReplayBuffer", "capacity": t.replay_capacity})
         .reporting(min_sample_timesteps_per_iteration=0, min_time_s_per_iteration=1.0)
-        .debugging(seed=t.seed)
     )
-    config.formation_run = run.to_dict()
+    config.formation_run = run.to_dict()  # lr, gamma, n_step, epsilon, ... and the actors: RUN_FIELDS
     return config
 
 
@@ -154,26 +341,17 @@ def build_algorithm_config(run: RunConfig):
 
 
 def build_formation_config(run: RunConfig) -> FormationDQNConfig:
-    t, res = run.train, run.resources
+    """The formation path's config: the run config (``formation_run``, which sets the RLlib fields it names:
+    ``RUN_FIELDS``), one module per policy and its mapping."""
     specs = module_specs(run)
-    modules = sorted(specs)
-    mapping = shared_follower_mapping_fn if t.followers_share_policy else policy_mapping_fn
+    mapping = shared_follower_mapping_fn if run.train.followers_share_policy else policy_mapping_fn
     config = (
         FormationDQNConfig()
-        .environment(env=None, env_config={})
-        .env_runners(env_runner_cls=RolloutActor, num_env_runners=res.num_rollout_actors,
-                     num_cpus_per_env_runner=res.cpus_per_rollout_actor, create_local_env_runner=False,
-                     max_requests_in_flight_per_env_runner=2)
-        .learners(num_learners=1, num_gpus_per_learner=res.num_gpus_per_learner,
-                  num_cpus_per_learner=1 if res.num_gpus_per_learner == 0 else 0)
-        .multi_agent(policies=set(modules), policy_mapping_fn=mapping)
+        .multi_agent(policies=set(specs), policy_mapping_fn=mapping)
         .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs=specs))
-        .training(lr=t.lr, gamma=t.gamma, train_batch_size=t.batch_size,
-                  target_network_update_freq=t.target_update_every, tau=1.0, grad_clip=t.grad_clip,
-                  grad_clip_by="global_norm")
+        .training(grad_clip_by="global_norm")
         .reporting(min_sample_timesteps_per_iteration=0, min_time_s_per_iteration=1.0)
         .fault_tolerance(restart_failed_env_runners=True, delay_between_env_runner_restarts_s=1.0)
-        .debugging(seed=t.seed)
     )
     config.formation_run = run.to_dict()
     return config
@@ -199,6 +377,23 @@ class GreedyEvaluationMixin:
     def evaluate_greedy(self, episodes: int | None = None, seed: int | None = None) -> dict:
         """Summary rates of greedy play on held-out scenarios (``formation.evaluate.play_greedy``)."""
         return self.play_greedy(episodes, seed)["summary"]
+
+    def _evaluate_now(self) -> None:
+        """The periodic greedy evaluation (``eval.every_env_steps``), between RLlib's ``on_evaluate_start`` and
+        ``on_evaluate_end`` callbacks; ``last_eval`` keeps it, ``result["evaluation"]`` reports it."""
+        make_callback("on_evaluate_start", callbacks_objects=self.callbacks,
+                      callbacks_functions=self.config.callbacks_on_evaluate_start,
+                      kwargs=dict(algorithm=self, metrics_logger=self.metrics))
+        self.last_eval = self.evaluate_greedy()
+        make_callback("on_evaluate_end", callbacks_objects=self.callbacks,
+                      callbacks_functions=self.config.callbacks_on_evaluate_end,
+                      kwargs=dict(algorithm=self, metrics_logger=self.metrics,
+                                  evaluation_metrics=evaluation_results(self.last_eval, self.run)))
+
+    def _log_evaluation(self) -> None:
+        """``result["evaluation"]``: the last greedy evaluation, NaN before the first."""
+        for key, value in flatten_numbers(evaluation_results(self.last_eval, self.run)).items():
+            self.metrics.log_value((EVALUATION_RESULTS, *key), value, window=1)
 
     def play_greedy(self, episodes: int | None = None, seed: int | None = None, record: int = 0) -> dict:
         from formation.policy import Policy
@@ -268,6 +463,7 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         self._share_replays()
 
     def _after_restore(self) -> None:
+        self._log_lifetime()
         self._push_weights()
 
     # -- wiring
@@ -323,7 +519,7 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         for _, result in self.env_runner_group.fetch_ready_async_reqs(tags="sample", timeout_seconds=0.01):
             c["env_steps"] += result["env_steps"]
             c["driver_bytes"] += len(pickle.dumps(result))
-            self._log_episodes(result["episodes"])
+            self._log_episodes(result["episodes"], result["env_steps"])
         owed = t.replay_ratio * c["env_steps"] - c["updates"] - c["updates_skipped"]
         if learning and owed >= 1:
             n, need = int(min(owed, updates_per_call)), self._min_records()
@@ -342,7 +538,7 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         elif not learning:
             time.sleep(0.01)
         if c["env_steps"] >= c["next_eval_at"]:
-            self.last_eval = self.evaluate_greedy()
+            self._evaluate_now()
             c["next_eval_at"] += self.run.eval.every_env_steps
         self._log_counters()
 
@@ -362,17 +558,31 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
                 self.counters["replay_restarts"] += 1
             self._incarnations[index] = incarnation
 
-    def _log_episodes(self, episodes: list[dict]) -> None:
-        m = self.metrics
+    def _log_episodes(self, episodes: list[dict], env_steps: int) -> None:
+        """The rollout actors' finished episodes: RLlib's standard ``env_runners`` keys (an episode's return is its
+        agents' summed, as RLlib's multi-agent episodes count it) and the recipe's ``explore`` rates."""
+        m, window = self.metrics, self.config.metrics_num_episodes_for_smoothing
+        agents, modules = self.run.game.agent_names, module_of_agent(self.run)
+        m.log_value((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED), env_steps, reduce="sum")
+        m.log_value((ENV_RUNNER_RESULTS, NUM_EPISODES), len(episodes), reduce="sum")
         for e in episodes:
             self.counters["episodes"] += 1
+            team = float(sum(e["returns"]))
+            m.log_value((ENV_RUNNER_RESULTS, EPISODE_RETURN_MEAN), team, window=window)
+            m.log_value((ENV_RUNNER_RESULTS, EPISODE_RETURN_MAX), team, reduce="max", window=window)
+            m.log_value((ENV_RUNNER_RESULTS, EPISODE_RETURN_MIN), team, reduce="min", window=window)
+            m.log_value((ENV_RUNNER_RESULTS, EPISODE_LEN_MEAN), e["steps"], window=window)
+            for module in set(modules):
+                value = sum(r for r, owner in zip(e["returns"], modules) if owner == module)
+                m.log_value((ENV_RUNNER_RESULTS, EPISODE_MODULE_RETURN_MEAN, module), value, window=window)
+            for name, value in zip(agents, e["returns"]):
+                m.log_value((ENV_RUNNER_RESULTS, EPISODE_AGENT_RETURN_MEAN, name), value, window=window)
+                m.log_value(("explore", f"return_{name}"), value, window=500)
             for key in ("success", "reached", "collided", "broken", "truncated"):
                 m.log_value(("explore", key), float(e[key]), window=500)
             m.log_value(("explore", "episode_steps"), e["steps"], window=500)
             for start in STARTS[1:]:  # the share of training episodes that started elsewhere than the spec's places
                 m.log_value(("explore", f"start_{start}"), float(e["start"] == start), window=500)
-            for name, value in zip(self.run.game.agent_names, e["returns"]):
-                m.log_value(("explore", f"return_{name}"), value, window=500)
 
     def _log_counters(self) -> None:
         c = self.counters
@@ -383,9 +593,23 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         m.log_value("episodes", c["episodes"], window=1)
         m.log_value(NUM_ENV_STEPS_SAMPLED_LIFETIME, c["env_steps"], window=1)
         m.log_value("session_seconds", elapsed, window=1)
-        for key, value in self.last_eval.items():
-            if isinstance(value, int | float):
-                m.log_value(("greedy", key), value, window=1)
+        # RLlib's env_runners keys from the first iteration: counts of 0, means NaN before the first episode ends
+        m.log_value((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED), 0, reduce="sum")
+        m.log_value((ENV_RUNNER_RESULTS, NUM_EPISODES), 0, reduce="sum")
+        if c["episodes"] == 0:
+            for key in (EPISODE_RETURN_MEAN, EPISODE_LEN_MEAN):
+                m.log_value((ENV_RUNNER_RESULTS, key), math.nan, window=self.config.metrics_num_episodes_for_smoothing)
+        self._log_lifetime()
+        self._log_evaluation()
+
+    def _log_lifetime(self) -> None:
+        """RLlib's lifetime counters (lifetime sums, kept in checkpoints) brought up to ours. RLlib reads
+        ``env_runners/num_env_steps_sampled_lifetime`` to tell every rollout actor the env steps so far (its epsilon
+        schedule's clock) after each iteration and restore."""
+        for key, count in ((NUM_ENV_STEPS_SAMPLED_LIFETIME, "env_steps"), (NUM_EPISODES_LIFETIME, "episodes")):
+            behind = self.counters[count] - self.metrics.peek((ENV_RUNNER_RESULTS, key), default=0)
+            self.metrics.log_value((ENV_RUNNER_RESULTS, key), max(behind, 0), reduce="lifetime_sum")
+
 
 class StockFormationDQN(GreedyEvaluationMixin, DQN):
     """RLlib's own DQN training step (its EnvRunners, episode replay buffer and DQN loss) on the
@@ -412,11 +636,38 @@ class StockFormationDQN(GreedyEvaluationMixin, DQN):
         c["env_steps"] = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
         c["episodes"] = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_EPISODES_LIFETIME), default=0))
         if c["env_steps"] >= c["next_eval_at"]:
-            self.last_eval = self.evaluate_greedy()
+            self._evaluate_now()
             c["next_eval_at"] += self.run.eval.every_env_steps
+        self._log_evaluation()
 
 
 def _frame_shape(run: RunConfig) -> tuple[int, int, int]:
     obs_space, _ = spaces_of(run)
     h, w, c = obs_space.shape
     return (h, w, c // run.game.frame_stack)
+
+
+# the greedy evaluation's rates (formation.evaluate.play_greedy's summary) under result["evaluation"]
+EVALUATION_RATES = ("success", "leader_collision", "follower_collision", "formation_broken", "timeout",
+                    "steps_success_mean")
+
+
+def evaluation_results(summary: dict, run: RunConfig) -> dict:
+    """``result["evaluation"]`` of a greedy evaluation's summary (``{}``: none yet, every value NaN): its rates, and
+    RLlib's ``env_runners`` keys (the team's return, summed over agents as RLlib's multi-agent episodes count it)."""
+    returns = summary.get("return_mean") or {name: math.nan for name in run.game.agent_names}
+    rates = {key: math.nan if summary.get(key) is None else float(summary[key]) for key in EVALUATION_RATES}
+    return {**rates, ENV_RUNNER_RESULTS: {
+        EPISODE_RETURN_MEAN: float(sum(returns.values())),
+        EPISODE_AGENT_RETURN_MEAN: {name: float(v) for name, v in returns.items()},
+        NUM_EPISODES: float(summary.get("episodes", math.nan))}}
+
+
+def flatten_numbers(values: dict, prefix: tuple = ()) -> dict[tuple, float]:
+    out = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            out.update(flatten_numbers(value, (*prefix, key)))
+        else:
+            out[(*prefix, key)] = value
+    return out

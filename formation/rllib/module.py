@@ -4,9 +4,10 @@ It implements RLlib's ``QNetAPI`` and ``TargetNetworkAPI``, so RLlib's DQN learn
 path) and ours both train it, and ``InferenceOnlyAPI``, so rollout actors get weights without
 the target network. ``model_config``: ``network``, the network's ``NetworkSpec.to_dict()``
 (``formation.recipe.team.network_specs``), and ``epsilon``.
-A module that answers the leader has 16 actions, (leader's move, own move) as ``4 * leader + own``: its greedy and
-exploring forward passes pick among those, so rollouts and evaluation pick its row themselves
-(``formation.recipe.qnet.team_q_values``).
+Every module acts in the env's actions, 0..3. A module that answers the leader has 16 Q-values, one per (leader's
+move, own move) as ``4 * leader + own``; alone, without the leader's move, its ``forward_inference`` and
+``forward_exploration`` return the own move of its best pair. The formation path's rollout actors and evaluation read
+its Q-values instead and take the row of the move the leader makes (``formation.recipe.qnet.team_q_values``).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, QNetAPI, TargetNetwo
 from ray.rllib.core.rl_module.torch import TorchRLModule
 from ray.rllib.utils.schedules.scheduler import Scheduler
 
-from formation.recipe.qnet import NetworkSpec
+from formation.recipe.qnet import N_ACTIONS, NetworkSpec
 
 # a batch's observations as DuelingQNetwork.prepare makes them, when the learner prepared them already
 PREPARED_OBS, PREPARED_NEXT_OBS = "prepared_obs", "prepared_next_obs"
@@ -54,15 +55,20 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
         return ["_target_q_network"]
 
     # -- forward passes
+    def greedy_actions(self, obs: torch.Tensor) -> torch.Tensor:
+        """The env action (0..3) of the best Q-value; of a network that answers the leader, the own move of its
+        best (leader's move, own move) pair."""
+        return self.q_network(obs).argmax(dim=-1) % N_ACTIONS
+
     def _forward_inference(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
-        return {Columns.ACTIONS: self.q_network(batch[Columns.OBS]).argmax(dim=-1)}
+        return {Columns.ACTIONS: self.greedy_actions(batch[Columns.OBS])}
 
     def _forward_exploration(self, batch: dict[str, Any], t: int = 0, **kwargs) -> dict[str, Any]:
-        greedy = self.q_network(batch[Columns.OBS]).argmax(dim=-1)
+        greedy = self.greedy_actions(batch[Columns.OBS])
         self.epsilon_schedule.update(t)
         eps = self.epsilon_schedule.get_current_value()
         explore = torch.rand(greedy.shape, device=greedy.device) < eps
-        random = torch.randint(0, 4, greedy.shape, device=greedy.device)
+        random = torch.randint(0, N_ACTIONS, greedy.shape, device=greedy.device)
         return {Columns.ACTIONS: torch.where(explore, random, greedy)}
 
     def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:

@@ -20,7 +20,7 @@ from ray.rllib.utils.checkpoints import Checkpointable
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_NO
 
 from formation.game import MOVES
-from formation.recipe.config import RunConfig, TrainSettings
+from formation.recipe.config import TrainSettings
 from formation.recipe.qnet import q_values_of, team_q_values
 from formation.recipe.rollout import GameRollout, concatenate
 from formation.recipe.shaping import Potential
@@ -55,7 +55,7 @@ class RolloutActor(EnvRunner, Checkpointable):
     def __init__(self, *, config, **kwargs):
         super().__init__(config=config, **kwargs)
         torch.set_num_threads(1)
-        self.run = RunConfig.from_dict(self.config.formation_run)
+        self.run = self.config.run  # the run config, the RLlib fields that name its keys merged in
         self._modules_of_agent = module_of_agent(self.run)
         self._weights_seq_no = 0
         self._replay = None

@@ -1,4 +1,4 @@
-"""The RLlib view: a ``MultiAgentEnv`` over the PettingZoo environment, registered as ``"formation"``.
+"""The RLlib view of the game: a ``MultiAgentEnv`` over the PettingZoo environment, registered as ``"formation"``.
 
 ``env_config`` is a dict of ``GameConfig`` fields plus ``setting``; e.g.
 ``config.environment("formation", env_config={"setting": 2, "obs_type": "grid"})``.
