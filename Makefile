@@ -26,8 +26,9 @@ show: $(STAMP)
 	$(BIN)/formation show --setting 1 --out runs/show
 
 test: $(STAMP)
-	$(BIN)/ruff check formation tests benchmarks
-	$(BIN)/python -m pytest -q
+	$(BIN)/ruff check formation tests benchmarks experiments
+	# two workers for two cores: the tests that train spend much of their time waiting on Ray
+	$(BIN)/python -m pytest -q -n 2 --dist worksteal
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/env_speed.py

@@ -6,6 +6,7 @@ checked against ``BatchedGame`` (the only implementation of the rules) step for 
 
 from __future__ import annotations
 
+import fcntl
 import math
 import os
 import subprocess
@@ -96,21 +97,34 @@ def cli():
 
 
 @pytest.fixture(scope="session")
-def smoke_run(tmp_path_factory):
-    """A run folder of ``formation train configs/smoke.yaml``; tests only read it (copy it to change it)."""
-    out = tmp_path_factory.mktemp("smoke") / "run"
-    done = run_cli("train", "configs/smoke.yaml", "--out", str(out))
-    assert done.returncode == 0, done.stderr[-3000:]
+def smoke_run(tmp_path_factory, worker_id):
+    """A run folder of ``formation train configs/smoke.yaml``; tests only read it (copy it to change it).
+    Under pytest-xdist the workers share one: the first to ask trains it, the others wait for it."""
+    root = tmp_path_factory.mktemp("smoke") if worker_id == "master" else tmp_path_factory.getbasetemp().parent
+    out = root / "smoke-run"
+    with open(root / "smoke-run.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (out / "result.json").is_file():
+            done = run_cli("train", "configs/smoke.yaml", "--out", str(out))
+            assert done.returncode == 0, done.stderr[-3000:]
     return out
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def cluster():
-    """A small local Ray (2 CPUs, no dashboard) for one test module, shut down after it."""
+    """A small local Ray (2 CPUs, no dashboard) for every test of this session (of this xdist worker)
+    that trains in-process; shut down at the end. Starting one costs seconds: start it once."""
     ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    if not ray.is_initialized():
+        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
+
+
+@pytest.fixture(scope="session")
+def worker_id(request):
+    """pytest-xdist's worker name ("gw0", ...), or "master" without xdist (xdist's own fixture, when it runs)."""
+    return getattr(request.config, "workerinput", {}).get("workerid", "master")
 
 
 @pytest.fixture

@@ -6,17 +6,17 @@ import ast
 import importlib.metadata
 import re
 import sys
-import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _declared() -> set[str]:
-    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    """The installed package's own requirements (pyproject.toml's dependencies), extras left out."""
     names = set()
-    for requirement in project["dependencies"]:
-        names.add(re.split(r"[\[<>=!~ ;]", requirement, maxsplit=1)[0].lower().replace("_", "-"))
+    for requirement in importlib.metadata.requires("formation") or []:
+        if "extra ==" not in requirement:
+            names.add(re.split(r"[\[<>=!~ ;(]", requirement, maxsplit=1)[0].lower().replace("_", "-"))
     return names
 
 

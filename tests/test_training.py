@@ -30,106 +30,100 @@ def train_until(algo, env_steps: int) -> None:
         algo.train()
 
 
-@pytest.mark.parametrize("actors", [1, 2])
-def test_replay_ratio_holds_and_the_driver_never_receives_transitions(cluster, actors):
-    run, algo = build(actors, replay_ratio=0.25)
+@pytest.fixture(scope="module")
+def recipe_run(cluster):
+    """One smoke run with every mechanism the tests below look at: 2 rollout actors, prioritized replay, the
+    follower's answers to every leader move, the leader's accepted moves and exploring starts, trained to 3000
+    env steps. What the tests read of it: the run, its counters, the replay's statistics and a sample, and the share
+    of its episodes that started from an exploring start (weighed by the episodes that ended in each iteration:
+    each result's shares come from those alone). The algorithm stops before the tests run, so that its actors
+    leave the module's small Ray to the tests after them."""
+    run, algo = build(2, replay_ratio=0.25, prioritized=True, margin=5.0, answer_every_leader_move=True,
+                      any_shortest_move="leader", exploring_starts=0.5, learning_starts=500)
     try:
-        train_until(algo, 3000)
-        c = algo.counters
-        ratio = c["updates"] / c["env_steps"]
-        assert abs(ratio - 0.25) <= 0.025, ratio
-        stats = algo.replay_stats()
-        # every env step the actors reported is in the replay, pushed by the actors themselves
-        # (plus at most the samples still in flight: 2 requests per actor) ...
-        in_flight = actors * 2 * run.resources.games_per_actor * run.train.steps_per_sample
-        assert c["env_steps"] <= sum(s["replay_env_steps"] for s in stats) <= c["env_steps"] + in_flight
-        # ... while the driver got back less than half a frame per step (a transition carries at
-        # least two stacks of frames): counts, episode outcomes and learner metrics only
-        frame_bytes = 9 * 9 * 4
-        assert c["driver_bytes"] < 0.5 * c["env_steps"] * frame_bytes, c["driver_bytes"] / c["env_steps"]
-    finally:
-        algo.stop()
-
-
-def test_prioritized_replay_gets_the_learners_priorities(cluster):
-    """New records enter at the largest priority so far, 1 at the start; only priorities sent back
-    by the learner (TD error, plus the weighted margin loss) can raise it."""
-    run, algo = build(1, prioritized=True, margin=5.0, learning_starts=500)
-    try:
-        train_until(algo, 1500)
-        assert algo.counters["updates"] > 0
-        stats = algo.replay_stats()
-        assert max(s["replay_max_priority"] for s in stats) > 1.5, stats
-    finally:
-        algo.stop()
-
-
-def test_answers_to_every_leader_move_reach_the_replay_and_the_learner_learns_from_them(cluster):
-    run, algo = build(1, answer_every_leader_move=True, learning_starts=500)
-    try:
-        train_until(algo, 1500)
-        assert algo.counters["updates"] > 0  # the learner took the batches with a row of labels per step
-        batch = ray.get(algo.replays[0].sample.remote(256, 1, 0.97))
-        answers, labels, leader = batch["answers"], batch["labels"], batch["actions"][:, 0]
-        taught = labels[:, 1] >= 0
-        # the label of the move the leader played is the answer to that move ...
-        assert taught.any() and (answers[taught, 1, leader[taught]] == labels[taught, 1]).all()
-        # ... and the other moves have answers too
-        others = (answers[:, 1] >= 0).sum(1) - taught
-        assert (others >= 1).mean() > 0.5
-        assert (answers[:, 0] == -1).all()
-    finally:
-        algo.stop()
-
-
-def test_accepted_joint_actions_reach_the_replay_and_the_learner_learns_from_them(cluster):
-    run, algo = build(1, answer_every_leader_move=True, any_shortest_move="leader", learning_starts=500)
-    try:
-        train_until(algo, 1500)
-        assert algo.counters["updates"] > 0  # the learner took the batches with the accepted moves
-        batch = ray.get(algo.replays[0].sample.remote(256, 1, 0.97))
-        labels, accepted = batch["labels"], batch["accepted"]
-        taught = np.flatnonzero(labels[:, 0] >= 0)
-        assert len(taught) and (accepted[labels[:, 0] < 0] == 0).all()
-        # the joint label is always accepted, and often other joint actions are too
-        label_bits = 1 << (4 * labels[taught, 0] + batch["answers"][taught, 1, labels[taught, 0]])
-        assert (accepted[taught] & label_bits == label_bits).all()
-        assert (accepted[taught] != label_bits).mean() > 0.3
-    finally:
-        algo.stop()
-
-
-def test_exploring_starts_reach_the_rollout_actors_and_show_in_the_metrics(cluster):
-    run, algo = build(1, exploring_starts=0.5, learning_starts=500)
-    try:
-        # each result's shares come from the episodes that ended in its iteration (20 to 35 here): weigh
-        # them by those counts, to get the shares of all the run's episodes (about 380)
-        starts, episodes = {"exploring": 0.0}, 0
-        while algo.counters["env_steps"] < 2000:
+        exploring, episodes = 0.0, 0
+        while algo.counters["env_steps"] < 3000:
             before = algo.counters["episodes"]
             result = algo.train()
             ended = algo.counters["episodes"] - before
             if ended:
-                for start in starts:
-                    starts[start] += result["explore"][f"start_{start}"] * ended
+                exploring += result["explore"]["start_exploring"] * ended
                 episodes += ended
-        assert episodes == algo.counters["episodes"] and episodes >= 100, episodes
-        shares = {start: count / episodes for start, count in starts.items()}
-        shares["spec"] = 1.0 - sum(shares.values())  # the others started at the spec's places
-        # half the episodes are exploring starts (the exact shares are tested on GameRollout itself): over about
-        # 380 episodes the bounds are 4 standard deviations away, and a plumbing fault (a setting that does not
-        # reach the rollout actors: a share of 0) fails.
-        assert 0.4 < shares["exploring"] < 0.6, (episodes, shares)
-        assert 0.1 < shares["spec"] < 0.4, (episodes, shares)
+        assert episodes == algo.counters["episodes"], (episodes, algo.counters)
+        seen = {"run": run, "counters": dict(algo.counters), "replay_stats": algo.replay_stats(),
+                "sample": ray.get(algo.replays[0].sample.remote(256, 1, 0.97)),
+                "exploring": exploring / max(episodes, 1), "episodes": episodes}
     finally:
         algo.stop()
+    return seen
 
 
-def test_train_writes_a_checkpoint_and_resume_continues(cluster, tmp_path):
+def test_replay_ratio_holds_and_the_driver_never_receives_transitions(recipe_run):
+    run, c = recipe_run["run"], recipe_run["counters"]
+    actors = run.resources.num_rollout_actors
+    ratio = c["updates"] / c["env_steps"]
+    assert abs(ratio - 0.25) <= 0.025, ratio
+    stats = recipe_run["replay_stats"]
+    # every env step the actors reported is in the replay, pushed by the actors themselves
+    # (plus at most the samples still in flight: 2 requests per actor) ...
+    in_flight = actors * 2 * run.resources.games_per_actor * run.train.steps_per_sample
+    assert c["env_steps"] <= sum(s["replay_env_steps"] for s in stats) <= c["env_steps"] + in_flight
+    # ... while the driver got back less than half a frame per step (a transition carries at
+    # least two stacks of frames): counts, episode outcomes and learner metrics only
+    frame_bytes = 9 * 9 * 4
+    assert c["driver_bytes"] < 0.5 * c["env_steps"] * frame_bytes, c["driver_bytes"] / c["env_steps"]
+
+
+def test_prioritized_replay_gets_the_learners_priorities(recipe_run):
+    """New records enter at the largest priority so far, 1 at the start; only priorities sent back
+    by the learner (TD error, plus the weighted margin loss) can raise it."""
+    assert recipe_run["counters"]["updates"] > 0
+    stats = recipe_run["replay_stats"]
+    assert max(s["replay_max_priority"] for s in stats) > 1.5, stats
+
+
+def test_answers_to_every_leader_move_reach_the_replay_and_the_learner_learns_from_them(recipe_run):
+    assert recipe_run["counters"]["updates"] > 0  # the learner took the batches with a row of labels per step
+    batch = recipe_run["sample"]
+    answers, labels, leader = batch["answers"], batch["labels"], batch["actions"][:, 0]
+    taught = labels[:, 1] >= 0
+    # the label of the move the leader played is the answer to that move ...
+    assert taught.any() and (answers[taught, 1, leader[taught]] == labels[taught, 1]).all()
+    # ... and the other moves have answers too
+    others = (answers[:, 1] >= 0).sum(1) - taught
+    assert (others >= 1).mean() > 0.5
+    assert (answers[:, 0] == -1).all()
+
+
+def test_accepted_joint_actions_reach_the_replay_and_the_learner_learns_from_them(recipe_run):
+    assert recipe_run["counters"]["updates"] > 0  # the learner took the batches with the accepted moves
+    batch = recipe_run["sample"]
+    labels, accepted = batch["labels"], batch["accepted"]
+    taught = np.flatnonzero(labels[:, 0] >= 0)
+    assert len(taught) and (accepted[labels[:, 0] < 0] == 0).all()
+    # the joint label is always accepted, and often other joint actions are too
+    label_bits = 1 << (4 * labels[taught, 0] + batch["answers"][taught, 1, labels[taught, 0]])
+    assert (accepted[taught] & label_bits == label_bits).all()
+    assert (accepted[taught] != label_bits).mean() > 0.3
+
+
+def test_exploring_starts_reach_the_rollout_actors_and_show_in_the_metrics(recipe_run):
+    starts = recipe_run
+    # half the episodes are exploring starts (the exact shares are tested on GameRollout itself): over the
+    # 300-odd episodes the bounds are about 4 standard deviations away, and a plumbing fault (a setting that does
+    # not reach the rollout actors: a share of 0) fails.
+    assert starts["episodes"] >= 100, starts
+    assert 0.4 < starts["exploring"] < 0.6, starts
+
+
+def test_train_writes_a_checkpoint_and_resume_continues(cluster, smoke_run, tmp_path):
+    import shutil
+
     from formation.train import train
 
     out = tmp_path / "run"
-    summary = train(SMOKE, str(out), quiet=True)
+    shutil.copytree(smoke_run, out)  # `formation train configs/smoke.yaml`, as a user runs it
+    summary = json.loads((out / "result.json").read_text())["greedy"]
     assert 0.0 <= summary["success"] <= 1.0 and summary["episodes"] == 50
     assert (out / "checkpoint" / "algorithm_state.pkl").is_file()
     from PIL import Image
@@ -161,6 +155,10 @@ def test_train_writes_a_checkpoint_and_resume_continues(cluster, tmp_path):
     assert resumed["faults/updates_skipped"] - skipped_before >= 0.125 * 1100
     result = json.loads((out / "result.json").read_text())
     assert result["env_steps"] == resumed["env_steps"]
+    # the replay ratio held over both runs (two actors, then one): each env step owed a quarter of an update,
+    # run or (while the replay refilled) skipped
+    ratio = (resumed["learner_updates"] + resumed["faults/updates_skipped"]) / resumed["env_steps"]
+    assert abs(ratio - 0.25) <= 0.025, ratio
 
 
 def test_resume_without_checkpoint_and_bad_config_are_one_line_errors(tmp_path):
