@@ -11,7 +11,7 @@ from pathlib import Path
 def test_sigterm_saves_a_checkpoint_then_exits(tmp_path):
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "formation.cli", "train", "configs/smoke.yaml", "--out", str(out),
-           "--set", "train.total_env_steps=1000000"]
+           "--set", "train.total_env_steps=1000000", "--set", "checkpoint.every_iterations=1"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
