@@ -31,11 +31,11 @@ import yaml
 
 from formation.config import ConfigError, RunFailed
 from formation.pictures import write_episodes_gif
+from formation.policy import TRAINING  # the run folder's training record (``training_record``)
 from formation.recipe.config import RunConfig
-from formation.storage import RemoteRun, is_uri
+from formation.storage import RemoteRun, is_uri, write_text_whole
 
 CHECKPOINT = "checkpoint"
-TRAINING = "training.json"  # the training record (``training_record``)
 # what --set may change when resuming: how long to train, a fine-tuning phase (a lower lr, and a
 # replay refilled to learning_starts records before the first update, as it starts empty), and where it
 # runs (a run started on a cluster or a GPU machine goes on on a laptop, and the other way round), and the
@@ -218,9 +218,8 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         save_checkpoint(algo, out_dir)
         session.update(ended=now(), seconds=round(time.monotonic() - session_clock, 3),
                        env_steps=[session["env_steps"][0], algo.counters["env_steps"]])
-        writing = out_dir / f"{TRAINING}.writing"  # whole or not at all, like the checkpoint
-        writing.write_text(json.dumps(training_record(earlier, session, algo.counters), indent=2) + "\n")
-        writing.replace(out_dir / TRAINING)
+        record = training_record(earlier, session, algo.counters)
+        write_text_whole(out_dir / TRAINING, json.dumps(record, indent=2) + "\n")  # whole, like the checkpoint
         if remote is not None:
             metrics_file.flush()
             writer.flush()
