@@ -49,6 +49,9 @@ __all__ = ["lower_bound", "paths_exist", "shortest_first_moves_many", "shortest_
 N_ACTIONS = len(MOVES)
 # Largest state-code space deduplicated with a dense array (int32 entries); above it, np.unique.
 DENSE_CODES_LIMIT = 1 << 23
+# Largest move table (state codes x joint actions, int32 entries) the searches step layers with; above it
+# (two followers on a large board), layers are stepped as cells.
+MOVE_TABLE_LIMIT = 1 << 22
 
 
 def lower_bound(scenario: dict | Scenario, config: GameConfig | None = None) -> int:
@@ -115,12 +118,12 @@ def _first_moves_surviving(scenarios: Sequence[dict | Scenario], config: GameCon
     """The joint actions that start ``steps[i]`` steps free of failures or a success sooner, as bit
     masks. With ``shortcut``, the first moves that a lockstep continuation shows safe
     (``_lockstep_survivors``) are not searched: the search starts from the others alone."""
-    n_agents = _mask_agents(config)
+    _mask_agents(config)
     parsed = [parse_scenario(s, config) for s in scenarios]
     safe = np.zeros(len(parsed), np.uint64)  # the result: per scenario, its surviving first joint actions
     if not parsed:
         return safe
-    board = _Board(config)
+    board = _board_of(config)
     zones = _ObstacleFuture(config, parsed, board).zones(int(steps.max()))
     layer = np.array([[r * board.width + c for r, c in (p.leader, *p.followers)] for p in parsed], np.int32)
     shown = _lockstep_survivors(board, zones, layer, steps) if shortcut else None
@@ -128,26 +131,27 @@ def _first_moves_surviving(scenarios: Sequence[dict | Scenario], config: GameCon
         safe |= shown
     owner = np.arange(len(parsed))
     firsts = None  # per state of the layer: the first joint actions of the paths reaching it (a bit mask)
-    dedupe = _Deduplicator(board, n_agents, len(parsed))
+    layers = _Layers(board, layer)
+    layer = layers.start
     n_cells = board.height * board.width
     for t in range(int(steps.max())):
-        parent, joint, cells = _successors(board, layer, zones[:, t + 1].reshape(-1), config.max_steps,
-                                           offset=owner * n_cells)
+        parent, joint, states = layers.successors(layer, zones[:, t + 1].reshape(-1), config.max_steps,
+                                                  offset=owner * n_cells)
         owner = owner[parent]
         if firsts is None and shown is not None:  # the first moves shown safe already need no search
             unknown = (shown[owner] >> joint.astype(np.uint64)) & np.uint64(1) == 0
-            parent, joint, cells, owner = parent[unknown], joint[unknown], cells[unknown], owner[unknown]
+            parent, joint, states, owner = parent[unknown], joint[unknown], states[unknown], owner[unknown]
         carried = firsts[parent] if firsts is not None else np.uint64(1) << joint.astype(np.uint64)
-        done = cells[:, 0] == board.destination  # a success ends the episode: nothing after it can fail
+        done = layers.leaders(states) == board.destination  # a success ends the episode: nothing after it can fail
         done |= steps[owner] == t + 1
         np.bitwise_or.at(safe, owner[done], carried[done])
-        cells, owner, carried = cells[~done], owner[~done], carried[~done]
-        if len(cells) == 0:
+        states, owner, carried = states[~done], owner[~done], carried[~done]
+        if len(states) == 0:
             break
-        keep, inverse = dedupe.groups(cells, owner)
+        keep, inverse = layers.groups(states, owner)
         firsts = np.zeros(len(keep), np.uint64)
         np.bitwise_or.at(firsts, inverse, carried)
-        layer, owner = cells[keep], owner[keep]
+        layer, owner = states[keep], owner[keep]
     return safe
 
 
@@ -213,7 +217,7 @@ def _first_found(parsed: Scenario, config: GameConfig) -> list[tuple[int, ...]] 
     bound = _steps_to_go(parsed.leader, config)
     if bound > config.max_steps:
         return None
-    board = _Board(config)
+    board = _board_of(config)
     future = _ObstacleFuture(config, [parsed], board)
     for deadline in _deadlines(bound, config.max_steps):
         found = _search(board, future.zones(deadline)[0], start, deadline)
@@ -235,7 +239,7 @@ def _first_moves_many(parsed: list[Scenario], config: GameConfig, max_steps: Seq
     found: list[tuple[int, int | None] | None] = [None] * len(parsed)
     if not any(ladders):
         return found
-    board = _Board(config)
+    board = _board_of(config)
     zones = _ObstacleFuture(config, parsed, board).zones(max(ladder[-1] for ladder in ladders if ladder))
     starts = np.array([[r * board.width + c for r, c in (p.leader, *p.followers)] for p in parsed], np.int32)
     for rung in range(max(len(ladder) for ladder in ladders)):
@@ -263,6 +267,20 @@ def _deadlines(bound: int, max_steps: int) -> list[int]:
     return deadlines
 
 
+_BOARDS: dict[tuple, _Board] = {}
+
+
+def _board_of(config: GameConfig) -> _Board:
+    """The ``_Board`` of a config's board and formation limits, built once: its move tables cost more
+    to build than a search of a few states."""
+    key = (config.height, config.width, config.destination, config.d_min, config.d_max)
+    if key not in _BOARDS:
+        if len(_BOARDS) >= 8:
+            _BOARDS.clear()
+        _BOARDS[key] = _Board(config)
+    return _BOARDS[key]
+
+
 class _Board:
     """Lookup tables over the cells of the board; a cell is the integer ``row * W + col``."""
 
@@ -285,6 +303,17 @@ class _Board:
         reach = max(math.ceil(config.d_max) - 1, 0)
         self.reach_rows, self.reach_cols = min(reach, H - 1), min(reach, W - 1)
         self.n_offsets = (2 * self.reach_rows + 1) * (2 * self.reach_cols + 1)
+        self._moves: dict[int, _MoveTable] = {}
+
+    def moves(self, n_agents: int) -> _MoveTable | None:
+        """The ``_MoveTable`` of a team of ``n_agents``, or None where it would have more than
+        ``MOVE_TABLE_LIMIT`` entries."""
+        n_codes = self.height * self.width * self.n_offsets ** (n_agents - 1)
+        if n_codes * N_ACTIONS ** n_agents > MOVE_TABLE_LIMIT:
+            return None
+        if n_agents not in self._moves:
+            self._moves[n_agents] = _MoveTable(self, n_agents)
+        return self._moves[n_agents]
 
 
 class _ObstacleFuture:
@@ -355,15 +384,15 @@ def _search_first_moves(board: _Board, zones: np.ndarray, starts: np.ndarray, de
     carries the set of the first joint actions of the paths reaching it (a bit mask), merged over
     duplicates. Per scenario ``(length, mask)`` of the first layer with a success, ``mask`` over all
     the successes in it (None without ``masks``), or None where no success comes within its deadline."""
-    n_scenarios, n_agents = starts.shape
+    n_scenarios = len(starts)
     n_cells = board.height * board.width
-    layer, owner = starts, np.arange(n_scenarios)  # the states of a layer and the scenario of each
+    layers = _Layers(board, starts)
+    layer, owner = layers.start, np.arange(n_scenarios)  # the states of a layer and the scenario of each
     firsts = None  # per state of the layer: its first joint actions (None at the start)
     found: list[tuple[int, int | None] | None] = [None] * n_scenarios
-    dedupe = _Deduplicator(board, n_agents, n_scenarios)
     for t in range(int(deadlines.max())):
-        parent, joint, cells = _successors(board, layer, zones[:, t + 1].reshape(-1), deadlines[owner] - t - 1,
-                                           offset=owner * n_cells)
+        parent, joint, states = layers.successors(layer, zones[:, t + 1].reshape(-1), deadlines[owner] - t - 1,
+                                                 offset=owner * n_cells)
         owner = owner[parent]
         if not masks:
             carried = None
@@ -371,7 +400,7 @@ def _search_first_moves(board: _Board, zones: np.ndarray, starts: np.ndarray, de
             carried = firsts[parent]
         else:
             carried = np.uint64(1) << joint.astype(np.uint64)
-        success = cells[:, 0] == board.destination
+        success = layers.leaders(states) == board.destination
         if success.any():
             winners = owner[success]
             if masks:
@@ -380,15 +409,15 @@ def _search_first_moves(board: _Board, zones: np.ndarray, starts: np.ndarray, de
             for k in np.unique(winners):
                 found[k] = (t + 1, int(totals[k]) if masks else None)
             playing = ~np.isin(owner, winners)
-            cells, owner = cells[playing], owner[playing]
+            states, owner = states[playing], owner[playing]
             carried = None if carried is None else carried[playing]
-        if len(cells) == 0:
+        if len(states) == 0:
             break
-        keep, inverse = dedupe.groups(cells, owner)
+        keep, inverse = layers.groups(states, owner)
         if masks:
             firsts = np.zeros(len(keep), np.uint64)
             np.bitwise_or.at(firsts, inverse, carried)
-        layer, owner = cells[keep], owner[keep]
+        layer, owner = states[keep], owner[keep]
     return found
 
 
@@ -412,15 +441,10 @@ def _expand(board: _Board, layer: np.ndarray, zone: np.ndarray, steps_left: int 
     number or one per state). ``offset``: per state, where its scenario's zone starts in ``zone``
     (several scenarios' zones laid end to end); None: one scenario."""
     n, n_agents = layer.shape
-    landing = board.next_cell[layer]  # (n, agents, actions)
-    safe = ~zone[landing if offset is None else landing + offset[:, None, None]]
-    safe[:, 0] &= board.steps_to_go[landing[:, 0]] <= np.reshape(steps_left, (-1, 1))
+    landing, safe = _landing(board, layer, zone, steps_left, offset)
 
     def along(values: np.ndarray, agent: int) -> np.ndarray:
-        """Put an agent's per-action values on its own axis of the joint-action grid."""
-        shape = [n] + [1] * n_agents
-        shape[1 + agent] = N_ACTIONS
-        return values.reshape(shape)
+        return _along(values, agent, n_agents)
 
     allowed = along(safe[:, 0], 0)
     for agent in range(1, n_agents):
@@ -438,6 +462,112 @@ def _expand(board: _Board, layer: np.ndarray, zone: np.ndarray, steps_left: int 
         for j in range(i + 1, n_agents):
             allowed = allowed & board.apart_of[squared_distance(i, j)]
     return landing, np.broadcast_to(allowed, (n,) + (N_ACTIONS,) * n_agents)
+
+
+def _landing(board: _Board, cells: np.ndarray, zone: np.ndarray, steps_left: int | np.ndarray,
+             offset: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``landing[state, agent, action]``, the cell an agent of a state with ``cells`` lands on, and
+    ``safe[state, agent, action]``: outside the zone, and for the leader, still able to arrive in
+    ``steps_left`` steps (see ``_expand``)."""
+    landing = board.next_cell[cells]  # (n, agents, actions)
+    safe = ~zone[landing if offset is None else landing + offset[:, None, None]]
+    safe[:, 0] &= board.steps_to_go[landing[:, 0]] <= np.reshape(steps_left, (-1, 1))
+    return landing, safe
+
+
+def _along(values: np.ndarray, agent: int, n_agents: int) -> np.ndarray:
+    """Put an agent's per-action values ``(n, actions)`` on its own axis of the joint-action grid."""
+    shape = [len(values)] + [1] * n_agents
+    shape[1 + agent] = N_ACTIONS
+    return values.reshape(shape)
+
+
+class _MoveTable:
+    """Every joint action from every joint state, by state code (``_Deduplicator``'s): ``next[code, joint]``
+    is the code of the state it leads to, or -1 where it breaks the formation (checked as ``_expand``
+    checks it), and ``cells[code]`` the agents' cells. A layer kept as codes is stepped with lookups
+    instead of computing every move's distances and the new states' codes."""
+
+    def __init__(self, board: _Board, n_agents: int):
+        self.board = board
+        n_codes = board.height * board.width * board.n_offsets ** (n_agents - 1)
+        side = 2 * board.reach_cols + 1
+        rest, offsets = np.arange(n_codes), []
+        for _ in range(n_agents - 1):  # the last follower's offset is the least significant digit
+            rest, offset = np.divmod(rest, board.n_offsets)
+            offsets.insert(0, offset)
+        leader, on_board, cells = rest, np.ones(n_codes, bool), [rest]
+        for offset in offsets:
+            rows = board.row[leader] + offset // side - board.reach_rows
+            cols = board.col[leader] + offset % side - board.reach_cols
+            inside = (rows >= 0) & (rows < board.height) & (cols >= 0) & (cols < board.width)
+            on_board &= inside
+            cells.append(np.where(inside, rows * board.width + cols, 0))
+        self.cells = np.stack(cells, axis=1).astype(np.int32)  # codes of no state (a follower off the board): 0s
+        self.leader = self.cells[:, 0].copy()
+        joints = np.arange(N_ACTIONS ** n_agents)
+        moves = [(joints // N_ACTIONS ** (n_agents - 1 - i)) % N_ACTIONS for i in range(n_agents)]
+        landing = np.stack([board.next_cell[self.cells[:, i]][:, moves[i]] for i in range(n_agents)],
+                           axis=2)  # (codes, joints, agents)
+        rows, cols = board.row[landing], board.col[landing]
+
+        def squared(a: int, b: int) -> np.ndarray:
+            return (rows[..., a] - rows[..., b]) ** 2 + (cols[..., a] - cols[..., b]) ** 2
+        kept = np.broadcast_to(on_board[:, None], landing.shape[:2]).copy()
+        for f in range(1, n_agents):
+            kept &= board.kept_of[squared(0, f)]
+        for i in range(1, n_agents):
+            for j in range(i + 1, n_agents):
+                kept &= board.apart_of[squared(i, j)]
+        codes = _state_codes(board, landing.reshape(-1, n_agents)).reshape(kept.shape)
+        self.next = np.where(kept, codes, -1).astype(np.int32)
+
+    def codes(self, cells: np.ndarray) -> np.ndarray | None:
+        """The codes of states ``(states, agents)``; None if one has no code (a follower beyond reach)."""
+        codes = _state_codes(self.board, cells)
+        if ((codes < 0) | (codes >= len(self.cells))).any():
+            return None
+        return codes if (self.cells[codes] == cells).all() else None
+
+    def successors(self, codes: np.ndarray, zone: np.ndarray, steps_left: int | np.ndarray,
+                   offset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``_successors`` of the states ``codes``, the new states as codes."""
+        n, n_agents = len(codes), self.cells.shape[1]
+        _, safe = _landing(self.board, self.cells[codes], zone, steps_left, offset)
+        following = self.next[codes]  # (n, joints)
+        allowed = following.reshape((n,) + (N_ACTIONS,) * n_agents) >= 0
+        for agent in range(n_agents):
+            allowed = allowed & _along(safe[:, agent], agent, n_agents)
+        moves = np.flatnonzero(allowed)
+        parent, joint = np.divmod(moves, following.shape[1])
+        return parent, joint, following.reshape(-1)[moves]
+
+
+class _Layers:
+    """Steps the layers of a search over several scenarios, one scenario's states after another's
+    (``owner``): as codes through the board's ``_MoveTable``, or where it has none (or a start has no
+    code), as cells ``(states, agents)`` through ``_successors``."""
+
+    def __init__(self, board: _Board, starts: np.ndarray):
+        n_scenarios, n_agents = starts.shape
+        self.board, self.table = board, board.moves(n_agents)
+        self.dedupe = _Deduplicator(board, n_agents, n_scenarios)
+        self.start = starts if self.table is None else self.table.codes(starts)
+        if self.start is None:
+            self.table, self.start = None, starts
+
+    def successors(self, layer: np.ndarray, zone: np.ndarray, steps_left: int | np.ndarray, offset: np.ndarray):
+        if self.table is None:
+            return _successors(self.board, layer, zone, steps_left, offset)
+        return self.table.successors(layer, zone, steps_left, offset)
+
+    def leaders(self, layer: np.ndarray) -> np.ndarray:
+        return layer[:, 0] if self.table is None else self.table.leader[layer]
+
+    def groups(self, layer: np.ndarray, owner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.table is None:
+            return self.dedupe.groups(layer, owner)
+        return self.dedupe.groups_of_codes(layer, owner)
 
 
 class _Deduplicator:
@@ -462,7 +592,11 @@ class _Deduplicator:
     def groups(self, cells: np.ndarray, owner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """States of several scenarios (``owner``: each one's scenario): the index of one copy of
         each distinct (scenario, state), and for every state the position of its copy in that list."""
-        codes = owner * self.n_codes + self._codes(cells)
+        return self.groups_of_codes(self._codes(cells), owner)
+
+    def groups_of_codes(self, codes: np.ndarray, owner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``groups`` of states given by their codes."""
+        codes = owner * self.n_codes + codes
         if self.mark is None:
             _, keep, inverse = np.unique(codes, return_index=True, return_inverse=True)
             return keep, inverse
@@ -475,15 +609,19 @@ class _Deduplicator:
         return keep, slot[copy]
 
     def _codes(self, cells: np.ndarray) -> np.ndarray:
-        b = self.board
-        leader = cells[:, :1]
-        d_row = b.row[cells[:, 1:]] - b.row[leader] + b.reach_rows
-        d_col = b.col[cells[:, 1:]] - b.col[leader] + b.reach_cols
-        offsets = d_row * (2 * b.reach_cols + 1) + d_col
-        codes = leader[:, 0].astype(np.int64)
-        for i in range(offsets.shape[1]):
-            codes = codes * b.n_offsets + offsets[:, i]
-        return codes
+        return _state_codes(self.board, cells)
+
+
+def _state_codes(b: _Board, cells: np.ndarray) -> np.ndarray:
+    """The code of each state ``(states, agents)``: its leader's cell, then each follower's offset from it."""
+    leader = cells[:, :1]
+    d_row = b.row[cells[:, 1:]] - b.row[leader] + b.reach_rows
+    d_col = b.col[cells[:, 1:]] - b.col[leader] + b.reach_cols
+    offsets = d_row * (2 * b.reach_cols + 1) + d_col
+    codes = leader[:, 0].astype(np.int64)
+    for i in range(offsets.shape[1]):
+        codes = codes * b.n_offsets + offsets[:, i]
+    return codes
 
 
 def _rebuild(parents: list[np.ndarray], joint_actions: list[np.ndarray], parent: int, joint: int,
