@@ -36,6 +36,7 @@ Everything is vectorised over the states of a layer with numpy.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Sequence
 from typing import Any
 
@@ -47,7 +48,7 @@ from formation.game import COLLISION_OFFSETS, MOVES, BatchedGame, Scenario, pars
 __all__ = ["lower_bound", "paths_exist", "shortest_first_moves_many", "shortest_path", "surviving_first_moves_many"]
 
 N_ACTIONS = len(MOVES)
-# Largest state-code space deduplicated with a dense array (int32 entries); above it, np.unique.
+# Largest state-code space deduplicated with a dense array (of indices); above it, np.unique.
 DENSE_CODES_LIMIT = 1 << 23
 # Largest move table (state codes x joint actions, int32 entries) the searches step layers with; above it
 # (two followers on a large board), layers are stepped as cells.
@@ -304,6 +305,16 @@ class _Board:
         self.reach_rows, self.reach_cols = min(reach, H - 1), min(reach, W - 1)
         self.n_offsets = (2 * self.reach_rows + 1) * (2 * self.reach_cols + 1)
         self._moves: dict[int, _MoveTable] = {}
+        self._scratch = threading.local()
+
+    def marks(self, size: int) -> np.ndarray:
+        """A scratch array of ``size`` indices for ``_Deduplicator``, kept from one search to the next: a fresh
+        one of millions of entries costs a page fault per few hundred states marked. Per thread, and read
+        only where written in the same call, so what it held before never matters."""
+        marks = getattr(self._scratch, "marks", None)
+        if marks is None or len(marks) < size:
+            marks = self._scratch.marks = np.empty(size, np.intp)
+        return marks[:size]
 
     def moves(self, n_agents: int) -> _MoveTable | None:
         """The ``_MoveTable`` of a team of ``n_agents``, or None where it would have more than
@@ -521,6 +532,9 @@ class _MoveTable:
                 kept &= board.apart_of[squared(i, j)]
         codes = _state_codes(board, landing.reshape(-1, n_agents)).reshape(kept.shape)
         self.next = np.where(kept, codes, -1).astype(np.int32)
+        self.landing = board.next_cell[self.cells].reshape(n_codes, -1)  # (codes, agents * actions)
+        self.steps_to_go = board.steps_to_go[self.landing[:, :N_ACTIONS]]  # the leader's, after each action
+        self.shift = 2 * n_agents  # joint actions per state: 1 << shift
 
     def codes(self, cells: np.ndarray) -> np.ndarray | None:
         """The codes of states ``(states, agents)``; None if one has no code (a follower beyond reach)."""
@@ -533,14 +547,16 @@ class _MoveTable:
                    offset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``_successors`` of the states ``codes``, the new states as codes."""
         n, n_agents = len(codes), self.cells.shape[1]
-        _, safe = _landing(self.board, self.cells[codes], zone, steps_left, offset)
+        landing = self.landing[codes]
+        safe = ~zone[landing if offset is None else landing + offset[:, None]]
+        safe[:, :N_ACTIONS] &= self.steps_to_go[codes] <= np.reshape(steps_left, (-1, 1))
+        safe = safe.reshape(n, n_agents, N_ACTIONS)
         following = self.next[codes]  # (n, joints)
         allowed = following.reshape((n,) + (N_ACTIONS,) * n_agents) >= 0
         for agent in range(n_agents):
             allowed = allowed & _along(safe[:, agent], agent, n_agents)
         moves = np.flatnonzero(allowed)
-        parent, joint = np.divmod(moves, following.shape[1])
-        return parent, joint, following.reshape(-1)[moves]
+        return moves >> self.shift, moves & ((1 << self.shift) - 1), following.reshape(-1)[moves]
 
 
 class _Layers:
@@ -578,14 +594,14 @@ class _Deduplicator:
         self.board = board
         self.n_codes = board.height * board.width * board.n_offsets ** (n_agents - 1)  # per scenario
         total = self.n_codes * n_scenarios
-        self.mark = np.empty(total, np.int32) if total <= DENSE_CODES_LIMIT else None
+        self.mark = board.marks(total) if total <= DENSE_CODES_LIMIT else None
 
     def __call__(self, cells: np.ndarray) -> np.ndarray:
         """Indices of the first (dense: some) copy of each distinct state among ``cells``."""
         codes = self._codes(cells)
         if self.mark is None:
             return np.sort(np.unique(codes, return_index=True)[1])
-        order = np.arange(len(codes), dtype=np.int32)
+        order = np.arange(len(codes))
         self.mark[codes] = order
         return np.flatnonzero(self.mark[codes] == order)
 
@@ -600,7 +616,7 @@ class _Deduplicator:
         if self.mark is None:
             _, keep, inverse = np.unique(codes, return_index=True, return_inverse=True)
             return keep, inverse
-        order = np.arange(len(codes), dtype=np.int32)
+        order = np.arange(len(codes))
         self.mark[codes] = order
         copy = self.mark[codes]  # the index of one copy of each state, the same for all its copies
         keep = np.flatnonzero(copy == order)
