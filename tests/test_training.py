@@ -3,6 +3,7 @@
 One small local Ray cluster (2 CPUs) serves the whole module."""
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -41,7 +42,8 @@ def recipe_run(cluster):
     run, algo = build(2, replay_ratio=0.25, prioritized=True, margin=5.0, answer_every_leader_move=True,
                       any_shortest_move="leader", exploring_starts=0.5, learning_starts=500)
     try:
-        exploring, episodes = 0.0, 0
+        algo.time_account()
+        started, exploring, episodes = time.perf_counter(), 0.0, 0
         while algo.counters["env_steps"] < 3000:
             before = algo.counters["episodes"]
             result = algo.train()
@@ -52,7 +54,8 @@ def recipe_run(cluster):
         assert episodes == algo.counters["episodes"], (episodes, algo.counters)
         seen = {"run": run, "counters": dict(algo.counters), "replay_stats": algo.replay_stats(),
                 "sample": ray.get(algo.replays[0].sample.remote(256, 1, 0.97)),
-                "exploring": exploring / max(episodes, 1), "episodes": episodes}
+                "exploring": exploring / max(episodes, 1), "episodes": episodes,
+                "account": algo.time_account(), "wall": time.perf_counter() - started}
     finally:
         algo.stop()
     return seen
@@ -72,6 +75,19 @@ def test_replay_ratio_holds_and_the_driver_never_receives_transitions(recipe_run
     # least two stacks of frames): counts, episode outcomes and learner metrics only
     frame_bytes = 9 * 9 * 4
     assert c["driver_bytes"] < 0.5 * c["env_steps"] * frame_bytes, c["driver_bytes"] / c["env_steps"]
+
+
+def test_every_kind_of_process_accounts_for_its_stages(recipe_run):
+    """What benchmarks/where_time_goes.py reads: each process's seconds per stage, none more than it lived."""
+    account, wall, actors = recipe_run["account"], recipe_run["wall"], recipe_run["run"].resources.num_rollout_actors
+    assert {"act", "teacher", "game", "push"} <= set(account["rollout"]), account["rollout"]
+    assert {"insert", "sample", "priorities"} <= set(account["replay"]), account["replay"]
+    assert {"wait", "batch", "update"} <= set(account["learner"]), account["learner"]
+    assert {"fetch", "learner"} <= set(account["driver"]), account["driver"]
+    assert all(seconds > 0 for stages in account.values() for seconds in stages.values()), account
+    assert sum(account["rollout"].values()) <= actors * wall
+    for kind in ("replay", "learner", "driver"):
+        assert sum(account[kind].values()) <= wall, (kind, account[kind], wall)
 
 
 def test_prioritized_replay_gets_the_learners_priorities(recipe_run):

@@ -49,6 +49,7 @@ from formation.config import ConfigError, RunFailed
 from formation.evaluate import play_greedy
 from formation.recipe.config import RunConfig, TrainSettings
 from formation.recipe.rollout import STARTS
+from formation.recipe.stopwatch import Stopwatch, add_seconds
 from formation.recipe.team import answers_leader, module_of_agent, network_specs, spaces_of
 from formation.rllib.learner import FormationLearner
 from formation.rllib.module import DuelingQModule
@@ -460,6 +461,8 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         self._replay_ready = False
         self._incarnations: dict[int, str] = {}  # of each replay shard, as the learner last saw it
         self._started = time.perf_counter()
+        self.clock = Stopwatch()  # the driver's seconds per stage; the other processes' come with their results
+        self.account: dict[str, dict[str, float]] = {"rollout": {}, "learner": {}}
         self._share_replays()
 
     def _after_restore(self) -> None:
@@ -514,33 +517,54 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         in_flight = self.env_runner_group.num_in_flight_async_reqs(tag="sample") * steps_per_request
         owed_ahead = t.replay_ratio * (c["env_steps"] + in_flight) - c["updates"] - c["updates_skipped"]
         lead = updates_per_call + t.replay_ratio * steps_per_request * actors
+        clock, account = self.clock, self.account
         if not learning or owed_ahead < lead:
-            self.env_runner_group.foreach_env_runner_async("sample", tag="sample")
-        for _, result in self.env_runner_group.fetch_ready_async_reqs(tags="sample", timeout_seconds=0.01):
+            with clock("request"):
+                self.env_runner_group.foreach_env_runner_async("sample", tag="sample")
+        with clock("fetch"):  # mostly waiting: up to 10 ms for a rollout actor's answer
+            ready = self.env_runner_group.fetch_ready_async_reqs(tags="sample", timeout_seconds=0.01)
+        for _, result in ready:
             c["env_steps"] += result["env_steps"]
             c["driver_bytes"] += len(pickle.dumps(result))
+            add_seconds(account["rollout"], result.get("seconds", {}))
             self._log_episodes(result["episodes"], result["env_steps"])
         owed = t.replay_ratio * c["env_steps"] - c["updates"] - c["updates_skipped"]
         if learning and owed >= 1:
             n, need = int(min(owed, updates_per_call)), self._min_records()
-            results = learner_values(self.learner_group.foreach_learner(
-                lambda learner, n=n, need=need: learner.pull_and_update(n, need)))
+            with clock("learner"):  # waiting for the learner's updates
+                results = learner_values(self.learner_group.foreach_learner(
+                    lambda learner, n=n, need=need: learner.pull_and_update(n, need)))
             c["driver_bytes"] += len(pickle.dumps(results))
             self.metrics.aggregate([r["metrics"] for r in results], key=LEARNER_RESULTS)
             for r in results:
                 c["updates"] += r["updates"]
+                add_seconds(account["learner"], r.get("seconds", {}))
                 self._note_incarnations(r["incarnations"])
                 if r["updates"] < n:  # a replay restarted and holds too few records: wait for the refill
                     self._replay_ready = False
             if c["updates"] - c["weights_pushed_at"] >= t.weights_every_updates:
-                self._push_weights()
+                with clock("sync"):
+                    self._push_weights()
                 c["weights_pushed_at"] = c["updates"]
         elif not learning:
-            time.sleep(0.01)
+            with clock("fetch"):
+                time.sleep(0.01)
         if c["env_steps"] >= c["next_eval_at"]:
-            self._evaluate_now()
+            with clock("evaluation"):
+                self._evaluate_now()
             c["next_eval_at"] += self.run.eval.every_env_steps
         self._log_counters()
+
+    def time_account(self) -> dict[str, dict[str, float]]:
+        """Seconds in each stage of each kind of process since the last call, summed over the processes
+        of that kind (``formation.recipe.stopwatch``): the ``driver``, the ``rollout`` actors, the
+        ``learner`` and the ``replay`` shards."""
+        replay: dict[str, float] = {}
+        for seconds in ray.get([r.seconds.remote() for r in self.replays]):
+            add_seconds(replay, seconds)
+        out = {**self.account, "driver": self.clock.pop(), "replay": replay}
+        self.account = {"rollout": {}, "learner": {}}
+        return out
 
     def _min_records(self) -> int:
         return max(self.run.train.learning_starts, self.run.train.batch_size)

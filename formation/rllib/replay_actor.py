@@ -14,6 +14,7 @@ import uuid
 import ray
 
 from formation.recipe.replay import Chunk, FrameReplay
+from formation.recipe.stopwatch import Stopwatch
 
 
 @ray.remote(num_cpus=0, max_restarts=-1, max_task_retries=-1)
@@ -23,9 +24,11 @@ class ReplayActor:
         self.replay = FrameReplay(capacity, frame_shape, n_agents, frame_stack, seed=seed, prioritized=prioritized)
         self.env_steps = 0  # agent steps pushed (records that are not terminal records)
         self.incarnation = uuid.uuid4().hex  # a new one after every restart: the records are gone
+        self.clock = Stopwatch()
 
     def add(self, chunk: Chunk) -> int:
-        self.replay.add(chunk)
+        with self.clock("insert"):
+            self.replay.add(chunk)
         self.env_steps += int((~chunk.terminal).sum())
         return self.env_steps
 
@@ -33,11 +36,18 @@ class ReplayActor:
         """A batch (with this replay's ``incarnation``), or None while it holds fewer than ``min_records``."""
         if self.replay.size < max(min_records, 1):
             return None
-        return {**self.replay.sample(batch_size, n_step=n_step, gamma=gamma), "incarnation": self.incarnation}
+        with self.clock("sample"):
+            batch = self.replay.sample(batch_size, n_step=n_step, gamma=gamma)
+        return {**batch, "incarnation": self.incarnation}
 
     def update_priorities(self, ids, td_errors, incarnation: str | None = None) -> None:
         if incarnation is None or incarnation == self.incarnation:  # else: the records died with a restart
-            self.replay.update_priorities(ids, td_errors)
+            with self.clock("priorities"):
+                self.replay.update_priorities(ids, td_errors)
+
+    def seconds(self) -> dict[str, float]:
+        """Seconds in each stage since the last call (``formation.recipe.stopwatch``)."""
+        return self.clock.pop()
 
     def stats(self) -> dict:
         return {**self.replay.stats(), "replay_env_steps": self.env_steps, "incarnation": self.incarnation}

@@ -24,6 +24,7 @@ from formation.recipe.config import TrainSettings
 from formation.recipe.qnet import q_values_of, team_q_values
 from formation.recipe.rollout import GameRollout, concatenate
 from formation.recipe.shaping import Potential
+from formation.recipe.stopwatch import Stopwatch
 from formation.recipe.teacher import Teacher, safety_labels
 from formation.recipe.team import module_of_agent, spaces_of
 
@@ -60,6 +61,7 @@ class RolloutActor(EnvRunner, Checkpointable):
         self._weights_seq_no = 0
         self._replay = None
         self.num_env_steps_sampled_lifetime = 0
+        self.clock = Stopwatch()  # seconds per stage, returned with every sample()
         self.make_env()
         self.make_module()
 
@@ -176,35 +178,42 @@ class RolloutActor(EnvRunner, Checkpointable):
         return actions
 
     def sample(self, **kwargs) -> dict[str, Any]:
-        run, rollout = self.run, self.rollout
+        run, rollout, clock = self.run, self.rollout, self.clock
         chunks = []
         for _ in range(run.train.steps_per_sample):
-            actions = self._actions(rollout.observations)
-            if run.train.dagger:
-                joints = self._teacher_joints()
-            else:
-                labels = np.full(actions.shape, -1, np.int8)
-            for i in range(self._demo_games):  # demonstration games follow the teacher
+            with clock("act"):
+                actions = self._actions(rollout.observations)
+            with clock("teacher"):
                 if run.train.dagger:
-                    actions[i] = np.where(joints[i] >= 0, joints[i], actions[i])
-                elif self._plans[i]:
-                    actions[i] = labels[i] = self._plans[i].pop(0)
-            answers = accepted = None
-            if run.train.dagger:
-                labels, answers = self._labels(joints, actions)
-            if run.train.any_shortest_move != "none":
-                accepted = self._accepted(joints)
-            safe = self._safe() if run.train.safety_head else None
-            chunks.append(rollout.step(actions, labels=labels, answers=answers, accepted=accepted, safe=safe))
+                    joints = self._teacher_joints()
+                else:
+                    labels = np.full(actions.shape, -1, np.int8)
+                for i in range(self._demo_games):  # demonstration games follow the teacher
+                    if run.train.dagger:
+                        actions[i] = np.where(joints[i] >= 0, joints[i], actions[i])
+                    elif self._plans[i]:
+                        actions[i] = labels[i] = self._plans[i].pop(0)
+                answers = accepted = None
+                if run.train.dagger:
+                    labels, answers = self._labels(joints, actions)
+                if run.train.any_shortest_move != "none":
+                    accepted = self._accepted(joints)
+            with clock("safety"):
+                safe = self._safe() if run.train.safety_head else None
+            with clock("game"):
+                chunks.append(rollout.step(actions, labels=labels, answers=answers, accepted=accepted, safe=safe))
             if not run.train.dagger:
-                for i in np.flatnonzero(rollout.game.steps[: self._demo_games] == 0):
-                    self._plan(int(i))
-        records = concatenate(chunks)
+                with clock("teacher"):
+                    for i in np.flatnonzero(rollout.game.steps[: self._demo_games] == 0):
+                        self._plan(int(i))
+        with clock("push"):
+            records = concatenate(chunks)
+            self._replay.add.remote(records)
         steps = rollout.batch_size * run.train.steps_per_sample
         self.num_env_steps_sampled_lifetime += steps
-        self._replay.add.remote(records)
         episodes = rollout.pop_episodes()
-        return {"env_steps": steps, "episodes": episodes, "worker": getattr(self, "worker_index", 0)}
+        return {"env_steps": steps, "episodes": episodes, "worker": getattr(self, "worker_index", 0),
+                "seconds": clock.pop()}
 
     # -- state
     def get_state(self, components=None, *, not_components=None, **kwargs) -> dict:
@@ -217,6 +226,10 @@ class RolloutActor(EnvRunner, Checkpointable):
         return state
 
     def set_state(self, state: dict) -> None:
+        with self.clock("sync"):
+            self._set_state(state)
+
+    def _set_state(self, state: dict) -> None:
         if COMPONENT_RL_MODULE in state:
             seq = state.get(WEIGHTS_SEQ_NO, 0)
             if seq == 0 or seq > self._weights_seq_no:
