@@ -3,6 +3,7 @@
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from formation.recipe.loss import ACCEPTED, DISCOUNTS, LABELS, RETURNS, module_batches
 
@@ -235,3 +236,51 @@ def test_a_safety_head_adds_its_loss_but_not_its_wrong_verdicts_to_the_priority(
     torch.testing.assert_close(loss, td + bce)
     np.testing.assert_allclose(priority, [1.0, 0.5])  # the TD errors alone
     assert stats["safety_error"] == 2 / 32
+
+
+@pytest.mark.parametrize("finite", [True, False])
+def test_one_finiteness_check_of_all_gradients_applies_them_as_rllib_does(finite):
+    """The learner checks all gradients for nan and inf at once; the weights after an update must be those
+    RLlib's per-tensor checks give, with finite gradients and with a nan among them (set to 0 by RLlib)."""
+    import torch
+    from ray.rllib.core.learner.torch.torch_learner import TorchLearner
+    from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
+
+    from formation.recipe.config import RunConfig
+    from formation.recipe.team import module_of_agent, spaces_of
+    from formation.rllib.algorithm import build_algorithm_config
+
+    run = RunConfig.load("configs/smoke.yaml")
+    config = build_algorithm_config(run)
+    spaces = {m: spaces_of(run) for m in set(module_of_agent(run))}
+    rng = np.random.default_rng(1)
+    n, shape = 16, spaces["leader"][0].shape
+    returns = rng.normal(size=(n, 2)).astype(np.float32)
+    if not finite:
+        returns[3, 0] = np.nan  # the leader's loss and gradients: nan
+    sample = {"obs": rng.integers(0, 2, (n, *shape), dtype=np.uint8),
+              "next_obs": rng.integers(0, 2, (n, *shape), dtype=np.uint8),
+              "actions": rng.integers(0, 4, (n, 2)), "returns": returns,
+              "discounts": np.full(n, 0.9, np.float32), "labels": rng.integers(-1, 4, (n, 2)),
+              "weights": np.ones(n, np.float32)}
+    weights = {}
+    for name, apply in (("one check", None), ("rllib", TorchLearner.apply_gradients)):
+        torch.manual_seed(0)
+        learner = config.build_learner(spaces=spaces)
+        learner.module_threads = False
+        if apply is not None:
+            learner.apply_gradients = apply.__get__(learner)
+        learner.set_replays([], module_of_agent(run))
+        batch = MultiAgentBatch({m: SampleBatch(b) for m, b in module_batches(sample, module_of_agent(run)).items()},
+                                env_steps=n)
+        learner.update(batch=batch, timesteps={"num_env_steps_sampled_lifetime": 0})
+        weights[name] = {m: {k: v.clone() for k, v in learner.module[m].state_dict().items()}
+                         for m in ("leader", "follower")}
+    torch.manual_seed(0)
+    before = config.build_learner(spaces=spaces)
+    for m in ("leader", "follower"):
+        for key, value in weights["one check"][m].items():
+            torch.testing.assert_close(value, weights["rllib"][m][key])
+            assert torch.isfinite(value).all()
+        moved = [k for k, v in weights["one check"][m].items() if not torch.equal(v, before.module[m].state_dict()[k])]
+        assert any("q_network" in k for k in moved), m  # the update did change the weights

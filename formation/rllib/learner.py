@@ -22,6 +22,7 @@ from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from formation.recipe.loss import ACTIONS, NEXT_OBS, OBS, dqn_loss, module_batches
+from formation.recipe.stopwatch import Stopwatch
 from formation.rllib.module import PREPARED_NEXT_OBS, PREPARED_OBS, SAFETY_LOGITS
 
 # the recipe's batches use RLlib's column names
@@ -59,6 +60,20 @@ class FormationLearner(DQNTorchLearner):
         self.apply_gradients(self.postprocess_gradients(gradients))
         return {m: r[0] for m, r in results.items()}, {m: r[1] for m, r in results.items()}, {}
 
+    def apply_gradients(self, gradients_dict: dict) -> None:
+        """RLlib's ``apply_gradients``, with one finiteness check of all gradients at once instead of two
+        per parameter tensor; RLlib's own (per tensor: ``nan`` and ``inf`` set to numbers) where one is not
+        finite, or where grad scalers or torch LR schedulers are in use."""
+        grads = [g for g in gradients_dict.values() if g is not None]
+        plain = self._grad_scalers is None and self._lr_scheduler_classes is None
+        if not plain or (grads and not bool(torch.stack(torch._foreach_norm(grads)).isfinite().all())):
+            return super().apply_gradients(gradients_dict)
+        for pid, grad in gradients_dict.items():
+            self._params[pid].grad = grad
+        for module_id, names in self._module_optimizers.items():
+            for name in names:
+                self.get_optimizer(module_id, name).step()
+
     def _prepare_once(self, batch: dict) -> None:
         """Run the layers without weights (``DuelingQNetwork.prepare``) once for each distinct tensor of
         observations of the batch, not once per module and network: the leader's and the follower's
@@ -95,6 +110,7 @@ class FormationLearner(DQNTorchLearner):
         self._turn = 0
         self._priority: dict[str, np.ndarray] = {}
         self._stats: dict[str, dict[str, float]] = {}
+        self._clock = Stopwatch()
         self.num_updates = getattr(self, "num_updates", 0)
         return True
 
@@ -117,34 +133,48 @@ class FormationLearner(DQNTorchLearner):
         """Run up to ``num_updates`` updates on batches pulled from the replay. Returns the reduced
         ``metrics``, the ``updates`` run, and the ``incarnations`` of the replays seen (index ->
         id). It stops early when a replay holds fewer than ``min_records`` (it restarted empty)."""
-        cfg = self.config
+        cfg, clock = self.config, self._clock
         done, seen = 0, {}
         for _ in range(num_updates):
             if self._prefetch is None:
                 self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma, min_records)
             index, ref = self._prefetch
-            sample = ray.get(ref)
+            with clock("wait"):  # for the replay's batch: the part of its sampling the prefetch did not hide
+                sample = ray.get(ref)
             self._prefetch = None
             if sample is None:  # the replay is refilling after a restart
                 break
             self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma, min_records)
             incarnation = seen[index] = sample.pop("incarnation")
+            priority = self.update_on(sample)
+            done += 1
+            if priority is not None:
+                self._replays[index].update_priorities.remote(sample["ids"], priority, incarnation)
+        with clock("batch"):
+            metrics = self.metrics.reduce()
+        return {"metrics": metrics, "updates": done, "incarnations": seen, "seconds": clock.pop()}
+
+    def update_on(self, sample: dict) -> np.ndarray | None:
+        """One update of every module on a replay batch (``FrameReplay.sample``); returns the batch's new
+        priorities (None without ``train.prioritized``)."""
+        clock = self._clock
+        with clock("batch"):
             batches = module_batches(sample, self._module_of_agent, self._answering,
                                      self._any_shortest_move, self._safety)
             n = len(sample["ids"])
             batch = MultiAgentBatch({m: SampleBatch(b) for m, b in batches.items()}, env_steps=n)
+        with clock("update"):  # RLlib's update: to the device, forward, backward, step, target sync
             # DQNLearner syncs target networks by this count: ours counts learner updates.
             self.update(batch=batch, timesteps={NUM_ENV_STEPS_SAMPLED_LIFETIME: self.num_updates},
                         _no_metrics_reduce=True)
-            self.num_updates += 1
-            done += 1
+        self.num_updates += 1
+        with clock("batch"):
             for module_id, stats in self._stats.items():
                 for key, value in stats.items():
                     self.metrics.log_value((module_id, key), value, window=1)
-            if cfg.prioritized:
-                priority = np.stack([self._priority[m].reshape(-1, n).max(0) for m in batches]).max(0)
-                self._replays[index].update_priorities.remote(sample["ids"], priority, incarnation)
-        return {"metrics": self.metrics.reduce(), "updates": done, "incarnations": seen}
+            if not self.config.prioritized:
+                return None
+            return np.stack([self._priority[m].reshape(-1, n).max(0) for m in batches]).max(0)
 
     def get_state(self, components=None, *, not_components=None, **kwargs):
         state = super().get_state(components, not_components=not_components, **kwargs)
