@@ -2,13 +2,15 @@
 
     .venv/bin/python benchmarks/train_throughput.py [--seconds 60] [--warmup 2000]
     .venv/bin/python benchmarks/train_throughput.py --recipe configs/setting1.yaml [--set train.replay_ratio=0.0625]
+    .venv/bin/python benchmarks/train_throughput.py --sampling 1,2,4,8,14 [--seconds 60]
 
 Same game (setting 1, 84x84 pixels, 4 stacked screens), same modules, same replay ratio, same
 number of rollout actors; each path runs ``--seconds`` after a warm-up. Prints env steps/s and
 learner updates/s of both and their ratio; how sampling alone grows from 1 to 4 rollout actors
 (learner idle); and replay bytes per stored env step of both paths. With ``--recipe``, only this
 project's path on a training config as it trains (teacher, prioritized replay, its network and replay
-ratio; periodic evaluation off), from an untrained network.
+ratio; periodic evaluation off), from an untrained network. With ``--sampling``, only sampling alone, with
+each of the given numbers of rollout actors.
 """
 
 from __future__ import annotations
@@ -67,6 +69,18 @@ def measure(run: RunConfig, seconds: float, warmup_steps: int) -> dict:
     return result
 
 
+def sampling(actor_counts, seconds: float, warmup_steps: int) -> None:
+    print("sampling alone (learner idle), formation path:")
+    base = None
+    for actors in actor_counts:
+        r = measure(run_config(train={"replay_ratio": 1e-6},
+                               resources={"num_rollout_actors": actors, "cpus_per_rollout_actor": 0.25}),
+                    seconds, warmup_steps)
+        base = base or r["env_steps_per_s"] / actors
+        print(f"  {actors:2d} rollout actor(s): {r['env_steps_per_s']:10.1f} env steps/s "
+              f"({r['env_steps_per_s'] / (base * actors):.0%} of linear from the first)", flush=True)
+
+
 def replay_bytes_per_step(algo) -> float:
     if hasattr(algo, "replays"):  # ours: the frame replay's arrays over the records they can hold
         stats = algo.replay_stats()  # bytes per slot, times slots (records) per agent step
@@ -101,6 +115,8 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--warmup", type=int, default=2000, help="env steps before timing")
     parser.add_argument("--recipe", help="a training config: time only its own path (formation)")
+    parser.add_argument("--sampling", metavar="ACTORS", help="only sampling alone, with these numbers of rollout "
+                        "actors (comma-separated)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="with --recipe: change a setting of the config, as formation train --set")
     args = parser.parse_args()
@@ -118,6 +134,9 @@ def main() -> None:
                   f"{r['updates_per_s']:.2f} learner updates/s ({r['replay_ratio']:.4f} per env step), "
                   f"{args.seconds:g} s after {args.warmup} env steps")
             return
+        if args.sampling:
+            sampling([int(n) for n in args.sampling.split(",")], args.seconds, args.warmup)
+            return
         print(f"setting 1, pixels, 4 stacked screens, replay ratio {BASE['train']['replay_ratio']}, "
               f"batch {BASE['train']['batch_size']}, 1 rollout actor x {BASE['resources']['games_per_actor']} games, "
               f"{args.seconds:g} s each")
@@ -129,12 +148,7 @@ def main() -> None:
                   f"{r['replay_bytes_per_env_step']:14,.0f}")
         print(f"formation / stock: env steps/s x{ours['env_steps_per_s'] / stock['env_steps_per_s']:.2f}, "
               f"updates/s x{ours['updates_per_s'] / max(stock['updates_per_s'], 1e-9):.2f}")
-        print("sampling alone (learner idle), formation path:")
-        for actors in (1, 2, 4):
-            r = measure(run_config(train={"replay_ratio": 1e-6},
-                                   resources={"num_rollout_actors": actors, "cpus_per_rollout_actor": 0.25}),
-                        args.seconds / 3, args.warmup // 2)
-            print(f"  {actors} rollout actor(s): {r['env_steps_per_s']:10.1f} env steps/s")
+        sampling((1, 2, 4), args.seconds / 3, args.warmup // 2)
     finally:
         ray.shutdown()
 
