@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 from typing import Any
 
@@ -45,7 +46,8 @@ import numpy as np
 from formation.config import ConfigError, GameConfig
 from formation.game import COLLISION_OFFSETS, MOVES, BatchedGame, Scenario, parse_scenario
 
-__all__ = ["lower_bound", "paths_exist", "shortest_first_moves_many", "shortest_path", "surviving_first_moves_many"]
+__all__ = ["FirstMovesAhead", "lower_bound", "paths_exist", "shortest_first_moves_many", "shortest_path",
+           "surviving_first_moves_many"]
 
 N_ACTIONS = len(MOVES)
 # Largest state-code space deduplicated with a dense array (of indices); above it, np.unique.
@@ -80,16 +82,17 @@ def shortest_path(scenario: dict | Scenario, setting: int | None = 1, *, config:
 
 
 def shortest_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: GameConfig,
-                              max_steps: Sequence[int] | None = None
+                              max_steps: Sequence[int] | None = None, ahead: FirstMovesAhead | None = None
                               ) -> list[tuple[int, list[tuple[int, ...]]] | None]:
     """For every scenario, the length of a shortest successful path and every joint action that starts
     one (in index order); ``None`` where no path ends in success within ``max_steps[i]`` steps (default:
     ``config.max_steps`` for all). From searches over all the scenarios at once, one per deadline they
     share, so numpy's cost per call is paid once for the lot. At most two followers (the first moves of
-    a layer's states are kept as 64-bit masks)."""
+    a layer's states are kept as 64-bit masks). With ``ahead`` (of the same config), the scenarios it
+    knows are answered from it, and the states on the shortest paths found are added to it."""
     n_agents = _mask_agents(config)
     parsed = [parse_scenario(s, config) for s in scenarios]
-    found = _first_moves_many(parsed, config, max_steps, masks=True)
+    found = _first_moves_many(parsed, config, max_steps, masks=True, ahead=ahead)
     return [None if f is None else (f[0], [_split(j, n_agents) for j in range(N_ACTIONS ** n_agents)
                                            if (f[1] >> j) & 1])
             for f in found]
@@ -143,7 +146,7 @@ def _first_moves_surviving(scenarios: Sequence[dict | Scenario], config: GameCon
             unknown = (shown[owner] >> joint.astype(np.uint64)) & np.uint64(1) == 0
             parent, joint, states, owner = parent[unknown], joint[unknown], states[unknown], owner[unknown]
         carried = firsts[parent] if firsts is not None else np.uint64(1) << joint.astype(np.uint64)
-        done = layers.leaders(states) == board.destination  # a success ends the episode: nothing after it can fail
+        done = layers.arrived(states)  # a success ends the episode: nothing after it can fail
         done |= steps[owner] == t + 1
         np.bitwise_or.at(safe, owner[done], carried[done])
         states, owner, carried = states[~done], owner[~done], carried[~done]
@@ -227,31 +230,129 @@ def _first_found(parsed: Scenario, config: GameConfig) -> list[tuple[int, ...]] 
     return None
 
 
-def _first_moves_many(parsed: list[Scenario], config: GameConfig, max_steps: Sequence[int] | None, masks: bool
-                      ) -> list[tuple[int, int | None] | None]:
+def _first_moves_many(parsed: list[Scenario], config: GameConfig, max_steps: Sequence[int] | None, masks: bool,
+                      ahead: FirstMovesAhead | None = None) -> list[tuple[int, int | None] | None]:
     """``_search_first_moves`` of many scenarios with growing deadlines, as ``_first_found`` runs
     ``_search``: at each rung of the deadline ladders, one search over every scenario still
-    unanswered whose ladder has that rung, each with its own deadline."""
+    unanswered whose ladder has that rung, each with its own deadline. ``ahead``: see
+    ``shortest_first_moves_many`` (with ``masks`` only)."""
     limits = [config.max_steps] * len(parsed) if max_steps is None else [int(m) for m in max_steps]
     if len(limits) != len(parsed):
         raise ConfigError(f"max_steps: got {len(limits)} limits for {len(parsed)} scenarios")
-    bounds = [_steps_to_go(p.leader, config) for p in parsed]
-    ladders = [_deadlines(b, limit) if b <= limit else [] for b, limit in zip(bounds, limits)]
     found: list[tuple[int, int | None] | None] = [None] * len(parsed)
+    searched = list(range(len(parsed)))
+    if ahead is not None:
+        ahead.check(config)
+        known = [ahead.get(p) for p in parsed]
+        for i, answer in enumerate(known):  # the length is the shortest one: beyond the limit, no path within it
+            found[i] = answer if answer is not None and answer[0] <= limits[i] else None
+        searched = [i for i, answer in enumerate(known) if answer is None]
+    bounds = [_steps_to_go(parsed[i].leader, config) for i in searched]
+    ladders = [_deadlines(b, limits[i]) if b <= limits[i] else [] for b, i in zip(bounds, searched)]
     if not any(ladders):
         return found
     board = _board_of(config)
-    zones = _ObstacleFuture(config, parsed, board).zones(max(ladder[-1] for ladder in ladders if ladder))
-    starts = np.array([[r * board.width + c for r, c in (p.leader, *p.followers)] for p in parsed], np.int32)
+    future = _ObstacleFuture(config, [parsed[i] for i in searched], board)
+    zones = future.zones(max(ladder[-1] for ladder in ladders if ladder))
+    starts = np.array([[r * board.width + c for r, c in (parsed[i].leader, *parsed[i].followers)] for i in searched],
+                      np.int32)
     for rung in range(max(len(ladder) for ladder in ladders)):
-        members = [i for i, ladder in enumerate(ladders) if found[i] is None and rung < len(ladder)]
+        members = [k for k, ladder in enumerate(ladders) if found[searched[k]] is None and rung < len(ladder)]
         if not members:
             break
-        deadlines = np.array([ladders[i][rung] for i in members])
-        answers = _search_first_moves(board, zones[members, : deadlines.max() + 1], starts[members], deadlines, masks)
-        for i, answer in zip(members, answers):
-            found[i] = answer
+        deadlines = np.array([ladders[k][rung] for k in members])
+        trace = [] if ahead is not None and masks else None
+        answers = _search_first_moves(board, zones[members, : deadlines.max() + 1], starts[members], deadlines, masks,
+                                      trace)
+        for k, answer in zip(members, answers):
+            found[searched[k]] = answer
+        if trace:
+            ahead.add(_shortest_ahead(trace, len(members)), [future.obstacles(k) for k in members], answers)
     return found
+
+
+class FirstMovesAhead:
+    """What ``shortest_first_moves_many`` found about the states after its scenarios' starts, for later calls.
+
+    The obstacles move on their own, so the obstacles of a state fix its whole future, and a state on a
+    shortest path found from an earlier state with those obstacles then (an earlier state of the same
+    episode, as a rollout's next states mostly are) needs no search of its own: its shortest paths are
+    the rest of those paths, of the length left, and its first moves their next steps. Kept per obstacles,
+    for the last ``capacity`` obstacle states added or asked for, as sorted state codes (``_Deduplicator``'s)
+    with the first moves of each (a bit mask)."""
+
+    def __init__(self, config: GameConfig, capacity: int = 8192):
+        _mask_agents(config)
+        self.config, self.capacity = config, capacity
+        self._board = _board_of(config)
+        self._tables: OrderedDict[tuple, list[tuple[np.ndarray, np.ndarray, int]]] = OrderedDict()
+
+    def check(self, config: GameConfig) -> None:
+        if config != self.config:
+            raise ConfigError("ahead: it holds what searches of another game config found")
+
+    def get(self, scenario: Scenario) -> tuple[int, int] | None:
+        """``(length, first moves mask)`` of a known state, as ``_search_first_moves`` finds them; None if unknown."""
+        tables = self._tables.get(scenario.obstacles)
+        code = self._code(scenario) if tables else None
+        if code is None:
+            return None
+        for codes, masks, length in tables:
+            i = int(np.searchsorted(codes, code))
+            if i < len(codes) and codes[i] == code:
+                self._tables.move_to_end(scenario.obstacles)
+                return length, int(masks[i])
+        return None
+
+    def add(self, layers: list[tuple[np.ndarray, np.ndarray, np.ndarray]], obstacles: list[list[tuple]],
+            found: list[tuple[int, int | None] | None]) -> None:
+        """Keep ``_shortest_ahead``'s ``layers`` of a search whose scenario k had ``obstacles[k][t - 1]`` after
+        step t and a shortest path of length ``found[k][0]``."""
+        for t, (codes, owner, masks) in enumerate(layers, start=1):
+            order = np.lexsort((codes, owner))
+            codes, owner, masks = codes[order], owner[order], masks[order]
+            ends = [*np.flatnonzero(np.diff(owner)) + 1, len(owner)]
+            for begin, end in zip([0, *ends[:-1]], ends):
+                if begin == end:
+                    continue
+                k = int(owner[begin])
+                key = obstacles[k][t - 1]
+                tables = self._tables.setdefault(key, [])
+                tables.insert(0, (codes[begin:end], masks[begin:end], found[k][0] - t))
+                del tables[4:]  # searched again from elsewhere: the newest few
+                self._tables.move_to_end(key)
+        while len(self._tables) > self.capacity:
+            self._tables.popitem(last=False)
+
+    def _code(self, scenario: Scenario) -> int | None:
+        """The state code of the team (as ``_state_codes``), None for a follower beyond reach."""
+        b, (row, col) = self._board, scenario.leader
+        code = row * b.width + col
+        for r, c in scenario.followers:
+            if abs(r - row) > b.reach_rows or abs(c - col) > b.reach_cols:
+                return None
+            code = code * b.n_offsets + (r - row + b.reach_rows) * (2 * b.reach_cols + 1) + c - col + b.reach_cols
+        return code
+
+
+def _shortest_ahead(trace: list, n_starts: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per layer t >= 1 of a traced ``_search_first_moves``, the states on a shortest path of their scenario (one
+    ending in its first layer with a success): their codes, scenarios and the first moves of those paths from
+    them (bit masks). Marked from the last layer back: a state is on one when a move from it reaches a success
+    or a state on one."""
+    marks = np.zeros(len(trace[-1][5]), np.uint64)  # over the states of the layer after the one being marked
+    ahead = []
+    for t in range(len(trace) - 1, -1, -1):
+        won_parent, won_joint, parent, joint, slot, codes, owner = trace[t]
+        good = marks[slot] != 0
+        parents = np.concatenate([won_parent, parent[good]])
+        joints = np.concatenate([won_joint, joint[good]]).astype(np.uint64)
+        on = np.flatnonzero(marks)
+        ahead.append((codes[on], owner[on], marks[on]))
+        marks = np.zeros(n_starts if t == 0 else len(trace[t - 1][5]), np.uint64)
+        np.bitwise_or.at(marks, parents, np.uint64(1) << joints)
+    ahead.reverse()
+    return ahead
 
 
 def _steps_to_go(leader: tuple[int, int], config: GameConfig) -> int:
@@ -337,6 +438,12 @@ class _ObstacleFuture:
         self.obstacle_rows = self.game.obstacle_rows.copy()  # (scenarios, obstacles)
         # _zones[scenario, t, cell]: is the cell in Z_t (t = 0 stands for the reset and stays empty).
         self._zones = np.zeros((len(scenarios), 1, board.height * board.width), bool)
+        self._after: list[tuple[list, list]] = []  # per step t >= 1: every scenario's obstacle columns, velocities
+
+    def obstacles(self, k: int) -> list[tuple]:
+        """Scenario ``k``'s obstacles after every step swept so far, from step 1 on, as ``Scenario.obstacles``."""
+        rows = self.obstacle_rows[k].tolist()
+        return [tuple(zip(rows, cols[k], velocities[k])) for cols, velocities in self._after]
 
     def zones(self, n_steps: int) -> np.ndarray:
         """``(scenarios, n_steps + 1, H * W)`` bool: the collision zone of every step up to ``n_steps``."""
@@ -349,11 +456,16 @@ class _ObstacleFuture:
         board, n_scenarios = self.board, len(self.obstacle_rows)
         zones = np.zeros((n_scenarios, n_steps, board.height * board.width), bool)
         if self.game.n_obstacles == 0:
+            self._after += [([[]] * n_scenarios, [[]] * n_scenarios)] * n_steps
             return zones
         # reached[t, s, k, o]: the column of scenario k's obstacle o after sub-step s of step t (a
         # scenario whose obstacles are slower than the batch's fastest reaches the same cell twice)
-        reached = np.array([[cols.copy() for cols in self.game.sweep_obstacles()]
-                            for _ in range(n_steps)], dtype=np.int32)
+        reached = []
+        for _ in range(n_steps):
+            reached.append([cols.copy() for cols in self.game.sweep_obstacles()])
+            game = self.game
+            self._after.append((game.obstacle_cols.tolist(), (game.obstacle_dirs * game.obstacle_speeds).tolist()))
+        reached = np.array(reached, dtype=np.int32)
         if reached.size == 0:
             return zones
         rows = self.obstacle_rows[None, None, :, :, None] + COLLISION_OFFSETS[:, 0]
@@ -389,12 +501,13 @@ def _search(board: _Board, zones: np.ndarray, start: tuple, deadline: int) -> li
 
 
 def _search_first_moves(board: _Board, zones: np.ndarray, starts: np.ndarray, deadlines: np.ndarray,
-                        masks: bool = True) -> list[tuple[int, int | None] | None]:
+                        masks: bool = True, trace: list | None = None) -> list[tuple[int, int | None] | None]:
     """``_search`` of several scenarios at once (``zones[k]``, ``starts[k]`` and ``deadlines[k]``:
     scenario k's zones, its agents' cells and its deadline). With ``masks``, every state of a layer
     carries the set of the first joint actions of the paths reaching it (a bit mask), merged over
     duplicates. Per scenario ``(length, mask)`` of the first layer with a success, ``mask`` over all
-    the successes in it (None without ``masks``), or None where no success comes within its deadline."""
+    the successes in it (None without ``masks``), or None where no success comes within its deadline.
+    ``trace``: a list to append every layer's moves to, for ``_shortest_ahead``."""
     n_scenarios = len(starts)
     n_cells = board.height * board.width
     layers = _Layers(board, starts)
@@ -411,7 +524,8 @@ def _search_first_moves(board: _Board, zones: np.ndarray, starts: np.ndarray, de
             carried = firsts[parent]
         else:
             carried = np.uint64(1) << joint.astype(np.uint64)
-        success = layers.leaders(states) == board.destination
+        success = layers.arrived(states)
+        won = parent[:0], joint[:0]
         if success.any():
             winners = owner[success]
             if masks:
@@ -422,13 +536,20 @@ def _search_first_moves(board: _Board, zones: np.ndarray, starts: np.ndarray, de
             playing = ~np.isin(owner, winners)
             states, owner = states[playing], owner[playing]
             carried = None if carried is None else carried[playing]
+            if trace is not None:
+                won = parent[success], joint[success]
+                parent, joint = parent[playing], joint[playing]
         if len(states) == 0:
+            if trace is not None:
+                trace.append((*won, parent, joint, parent[:0], layers.codes(states), owner))
             break
-        keep, inverse = layers.groups(states, owner)
+        keep, inverse = layers.groups(states, owner, inverse=masks)
         if masks:
             firsts = np.zeros(len(keep), np.uint64)
             np.bitwise_or.at(firsts, inverse, carried)
         layer, owner = states[keep], owner[keep]
+        if trace is not None:
+            trace.append((*won, parent, joint, inverse, layers.codes(layer), owner))
     return found
 
 
@@ -545,18 +666,21 @@ class _MoveTable:
 
     def successors(self, codes: np.ndarray, zone: np.ndarray, steps_left: int | np.ndarray,
                    offset: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``_successors`` of the states ``codes``, the new states as codes."""
+        """``_successors`` of the states ``codes``, the new states as codes, and whether a leader may have
+        reached the destination (else none has)."""
         n, n_agents = len(codes), self.cells.shape[1]
         landing = self.landing[codes]
         safe = ~zone[landing if offset is None else landing + offset[:, None]]
-        safe[:, :N_ACTIONS] &= self.steps_to_go[codes] <= np.reshape(steps_left, (-1, 1))
+        steps_to_go = self.steps_to_go[codes]
+        arriving = bool(len(steps_to_go)) and steps_to_go.min() == 0
+        safe[:, :N_ACTIONS] &= steps_to_go <= np.reshape(steps_left, (-1, 1))
         safe = safe.reshape(n, n_agents, N_ACTIONS)
         following = self.next[codes]  # (n, joints)
         allowed = following.reshape((n,) + (N_ACTIONS,) * n_agents) >= 0
         for agent in range(n_agents):
             allowed = allowed & _along(safe[:, agent], agent, n_agents)
         moves = np.flatnonzero(allowed)
-        return moves >> self.shift, moves & ((1 << self.shift) - 1), following.reshape(-1)[moves]
+        return moves >> self.shift, moves & ((1 << self.shift) - 1), following.reshape(-1)[moves], arriving
 
 
 class _Layers:
@@ -569,21 +693,32 @@ class _Layers:
         self.board, self.table = board, board.moves(n_agents)
         self.dedupe = _Deduplicator(board, n_agents, n_scenarios)
         self.start = starts if self.table is None else self.table.codes(starts)
+        self._arriving = True
         if self.start is None:
             self.table, self.start = None, starts
 
     def successors(self, layer: np.ndarray, zone: np.ndarray, steps_left: int | np.ndarray, offset: np.ndarray):
         if self.table is None:
             return _successors(self.board, layer, zone, steps_left, offset)
-        return self.table.successors(layer, zone, steps_left, offset)
+        parent, joint, states, self._arriving = self.table.successors(layer, zone, steps_left, offset)
+        return parent, joint, states
 
-    def leaders(self, layer: np.ndarray) -> np.ndarray:
-        return layer[:, 0] if self.table is None else self.table.leader[layer]
-
-    def groups(self, layer: np.ndarray, owner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def arrived(self, layer: np.ndarray) -> np.ndarray:
+        """Whether the leader of each state of ``successors``' last answer stands on the destination."""
         if self.table is None:
-            return self.dedupe.groups(layer, owner)
-        return self.dedupe.groups_of_codes(layer, owner)
+            return layer[:, 0] == self.board.destination
+        if not self._arriving:  # no leader came next to it: skip looking
+            return np.zeros(len(layer), bool)
+        return self.table.leader[layer] == self.board.destination
+
+    def codes(self, layer: np.ndarray) -> np.ndarray:
+        return _state_codes(self.board, layer) if self.table is None else layer
+
+    def groups(self, layer: np.ndarray, owner: np.ndarray, inverse: bool = True
+               ) -> tuple[np.ndarray, np.ndarray | None]:
+        if self.table is None:
+            return self.dedupe.groups(layer, owner, inverse)
+        return self.dedupe.groups_of_codes(layer, owner, inverse)
 
 
 class _Deduplicator:
@@ -605,21 +740,26 @@ class _Deduplicator:
         self.mark[codes] = order
         return np.flatnonzero(self.mark[codes] == order)
 
-    def groups(self, cells: np.ndarray, owner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def groups(self, cells: np.ndarray, owner: np.ndarray, inverse: bool = True
+               ) -> tuple[np.ndarray, np.ndarray | None]:
         """States of several scenarios (``owner``: each one's scenario): the index of one copy of
-        each distinct (scenario, state), and for every state the position of its copy in that list."""
-        return self.groups_of_codes(self._codes(cells), owner)
+        each distinct (scenario, state), and for every state the position of its copy in that list
+        (None unless ``inverse``)."""
+        return self.groups_of_codes(self._codes(cells), owner, inverse)
 
-    def groups_of_codes(self, codes: np.ndarray, owner: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def groups_of_codes(self, codes: np.ndarray, owner: np.ndarray, inverse: bool = True
+                        ) -> tuple[np.ndarray, np.ndarray | None]:
         """``groups`` of states given by their codes."""
         codes = owner * self.n_codes + codes
         if self.mark is None:
-            _, keep, inverse = np.unique(codes, return_index=True, return_inverse=True)
-            return keep, inverse
+            _, keep, positions = np.unique(codes, return_index=True, return_inverse=True)
+            return keep, positions if inverse else None
         order = np.arange(len(codes))
         self.mark[codes] = order
         copy = self.mark[codes]  # the index of one copy of each state, the same for all its copies
         keep = np.flatnonzero(copy == order)
+        if not inverse:
+            return keep, None
         slot = np.empty(len(codes), np.intp)
         slot[keep] = np.arange(len(keep))
         return keep, slot[copy]

@@ -6,14 +6,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from formation import planner
 from formation.config import ConfigError, GameConfig
 from formation.env import parallel_env
 from formation.game import BatchedGame, Scenario, parse_scenario
 from formation.planner import (
+    FirstMovesAhead,
     lower_bound,
     paths_exist,
     shortest_first_moves_many,
     shortest_path,
+    surviving_first_moves_many,
 )
 
 TINY = dict(height=7, width=7, n_obstacles=2, max_steps=14)  # small enough for the brute force
@@ -230,6 +233,74 @@ def test_needs_more_than_the_lower_bound():
     assert len(shortest_path(scenario, 2)) == 23
     assert shortest_path(scenario, 2, max_steps=23) is not None
     assert shortest_path(scenario, 2, max_steps=22) is None
+
+
+def greedy_play_states(setting: int, n_games: int, steps: int, epsilon: float = 0.3, seed: int = 0,
+                       **overrides) -> tuple[GameConfig, list[Scenario]]:
+    """The states of ``n_games`` games playing ``steps`` steps (restarting as they end), each step the first move of a
+    shortest path, or a random joint move with probability ``epsilon`` (and where there is no path): episodes'
+    first steps, states along shortest paths, and states off them."""
+    config = GameConfig.from_setting(setting, **overrides)
+    game, rng, out = BatchedGame(config, n_games, seed=seed), np.random.default_rng(seed), []
+    game.reset()
+    for _ in range(steps):
+        states = [game.scenario(i) for i in range(n_games)]
+        out += states
+        found = shortest_first_moves_many(states, config=config)
+        actions = rng.integers(0, 4, (n_games, 1 + config.n_followers))
+        for i, f in enumerate(found):
+            if f is not None and rng.random() >= epsilon:
+                actions[i] = f[1][int(rng.integers(len(f[1])))]
+        game.step(actions)
+        game.reset(mask=game.done)
+    return config, out
+
+
+@pytest.mark.parametrize("setting", [1, 2])
+def test_searches_stepping_layers_as_codes_answer_as_those_stepping_cells(setting, monkeypatch):
+    """The move table (layers as state codes) changes no answer of the searches: the same states searched
+    with layers of cells, the planner's way without a table, get the same shortest first moves, path
+    existence and surviving first moves."""
+    config, states = greedy_play_states(setting, 8, 30)
+    limits = [lower_bound(s, config) + (i % 4) * 2 - 1 for i, s in enumerate(states)]  # some too short
+
+    def answers():
+        return (shortest_first_moves_many(states, config=config, max_steps=limits),
+                paths_exist(states, config=config, max_steps=limits).tolist(),
+                surviving_first_moves_many(states, config=config, horizon=4).tolist())
+    assert planner._board_of(config).moves(2) is not None
+    fast = answers()
+    monkeypatch.setattr(planner, "MOVE_TABLE_LIMIT", 0)
+    assert planner._board_of(config).moves(2) is None
+    assert answers() == fast
+    assert any(f is None for f in fast[0]) and any(f is not None for f in fast[0])
+
+
+@pytest.mark.parametrize("setting", [1, 2])
+def test_first_moves_ahead_answer_as_a_search_of_the_state_itself(setting):
+    """States of epsilon-greedy play asked in order, one step's batch after another, with a ``FirstMovesAhead``
+    get what a search of each state alone (layers of cells, nothing kept) gets, and most states after the
+    first steps are answered from what earlier searches found."""
+    config, states = greedy_play_states(setting, 8, 30)
+    ahead = FirstMovesAhead(config)
+    limits = [lower_bound(s, config) + 6 for s in states]
+    known, kept = 0, []
+    for i in range(0, len(states), 8):
+        batch = states[i:i + 8]
+        known += sum(ahead.get(s) is not None for s in batch)
+        kept += shortest_first_moves_many(batch, config=config, max_steps=limits[i:i + 8], ahead=ahead)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(planner, "MOVE_TABLE_LIMIT", 0)
+        alone = [shortest_first_moves_many([s], config=config, max_steps=[limit])[0]
+                 for s, limit in zip(states, limits)]
+    assert kept == alone
+    assert known > len(states) // 2
+    # a short limit is answered from what is kept too: no path within it
+    short = [s for s in states if ahead.get(s) is not None and ahead.get(s)[0] > 1][:5]
+    assert short and shortest_first_moves_many(short, config=config, max_steps=[ahead.get(s)[0] - 1 for s in short],
+                                               ahead=ahead) == [None] * len(short)
+    with pytest.raises(ConfigError, match="ahead"):
+        shortest_first_moves_many(states[:1], config=config.replace(max_steps=50), ahead=ahead)
 
 
 # ---------------------------------------------------------------------------- no way through

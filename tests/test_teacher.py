@@ -7,10 +7,12 @@ import numpy as np
 import pytest
 import torch
 
+from formation import planner
 from formation.config import GameConfig
 from formation.game import BatchedGame
 from formation.planner import shortest_path
-from formation.recipe.teacher import Teacher, lockstep_order
+from formation.recipe.rollout import GameRollout
+from formation.recipe.teacher import Teacher, lockstep_order, safety_labels
 
 SMALL = GameConfig.from_setting(None, height=9, width=9, n_obstacles=1)
 
@@ -257,3 +259,50 @@ def test_rollout_actor_stores_the_accepted_joint_actions_of_each_labelled_state(
     assert (joints[:, 0] >= 0).any()
     chunk = actor.rollout.step(joints.clip(min=0), labels=joints, accepted=accepted)
     assert (chunk.accepted[: game.batch_size] == accepted).all()
+
+
+def rollout_calls(teacher, config, steps):
+    """What a rollout actor asks the teacher at every step of a ``steps`` long rollout of 8 games (labels, answers to
+    every leader move, accepted joint actions, safety labels), in its order; and the states and first steps asked
+    about, per step. Half the games play the labels, the others the label's or a random leader move (30%) and
+    the answer to it or a random joint move (30%), so the states include first steps and states off the shortest
+    paths."""
+    rollout, rng = GameRollout(config, 8, seed=1), np.random.default_rng(1)
+    game, asked, told = rollout.game, [], []
+    for _ in range(steps):
+        states, firsts = [game.scenario(i) for i in range(8)], list(game.steps == 0)
+        told.append(teacher_outputs(teacher, config, states, firsts))
+        asked.append((states, firsts))
+        actions = rng.integers(0, 4, (8, 2))
+        for i, (joint, answers) in enumerate(zip(*told[-1][:2])):
+            if joint is None:
+                continue
+            leader = int(rng.integers(4)) if i >= 4 and rng.random() < 0.3 else joint[0]
+            if answers[leader] is not None and (i < 4 or rng.random() >= 0.3):
+                actions[i] = answers[leader]
+            actions[i, 0] = leader
+        rollout.step(actions)
+    return told, asked
+
+
+def teacher_outputs(teacher, config, states, firsts):
+    joints = teacher.labels(states, firsts)
+    answers = [teacher.answers(s, j) if j is not None else None for s, j in zip(states, joints)]
+    accepted = [teacher.accepted(s, j, first_step=bool(f)) if j is not None else 0
+                for s, j, f in zip(states, joints, firsts)]
+    return joints, answers, accepted, safety_labels(states, config, 4).tolist()
+
+
+@pytest.mark.parametrize("setting", [1, 2])
+def test_the_teacher_tells_a_rollout_what_searches_of_each_state_alone_tell(setting, monkeypatch):
+    """Along epsilon-greedy rollouts, the teacher's labels, answers, accepted joint actions and safety labels are those
+    of a reference teacher that searches every state afresh (nothing kept from the searches of earlier states of
+    an episode) with layers of cells (no move table)."""
+    config = GameConfig.from_setting(setting)
+    told, asked = rollout_calls(Teacher(config, slack=6, robust_first_step=True), config, 25)
+    monkeypatch.setattr(planner, "MOVE_TABLE_LIMIT", 0)
+    reference = Teacher(config, slack=6, robust_first_step=True)
+    reference._ahead = None
+    assert [teacher_outputs(reference, config, states, firsts) for states, firsts in asked] == told
+    firsts = sum(f for _, fs in asked for f in fs)
+    assert 8 < firsts < 100 and any(j is None for step in told for j in step[0])

@@ -18,6 +18,7 @@ from formation.config import GameConfig
 from formation.game import MOVES, BatchedGame, Scenario
 from formation.game.core import joint_mask
 from formation.planner import (
+    FirstMovesAhead,
     lower_bound,
     paths_exist,
     shortest_first_moves_many,
@@ -54,6 +55,8 @@ class Teacher:
         self._capped: dict[int, GameConfig] = {}
         self._robust_labels: dict[tuple, tuple[int, ...] | None] = {}
         self._found: dict[Scenario, set[tuple[int, ...]] | None] = {}  # _starts, oldest first
+        # the states on the shortest paths found: a rollout's next states are mostly among them
+        self._ahead = FirstMovesAhead(config) if config.n_followers <= 2 else None
         destination, agents = config.destination[1], 1 + config.n_followers
         self._orders = [lockstep_order(agents, 2 if col < destination else 1) for col in range(config.width)]
         speeds = [sign * speed for speed in config.obstacle_speeds for sign in (1, -1)]
@@ -110,7 +113,8 @@ class Teacher:
         missing = list(dict.fromkeys(s for s in scenarios if s not in self._found))
         if not missing:
             return
-        found = shortest_first_moves_many(missing, config=self.config, max_steps=[self._limit(s) for s in missing])
+        found = shortest_first_moves_many(missing, config=self.config, max_steps=[self._limit(s) for s in missing],
+                                          ahead=self._ahead)
         for scenario, starts in zip(missing, found):
             if len(self._found) >= 256:
                 self._found.pop(next(iter(self._found)))
