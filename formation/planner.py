@@ -103,7 +103,23 @@ def paths_exist(scenarios: Sequence[dict | Scenario], *, config: GameConfig,
     """Whether each scenario has a successful path of at most ``max_steps[i]`` steps (default:
     ``config.max_steps``): ``shortest_path(...) is not None`` for all of them, searched at once."""
     parsed = [parse_scenario(s, config) for s in scenarios]
-    return np.array([f is not None for f in _first_moves_many(parsed, config, max_steps, masks=False)], bool)
+    limits = [config.max_steps] * len(parsed) if max_steps is None else [int(m) for m in max_steps]
+    if len(limits) != len(parsed):
+        raise ConfigError(f"max_steps: got {len(limits)} limits for {len(parsed)} scenarios")
+    exist = np.zeros(len(parsed), bool)
+    bounds = [_steps_to_go(p.leader, config) for p in parsed]
+    tried = [i for i, (bound, limit) in enumerate(zip(bounds, limits)) if bound <= limit]
+    if tried:  # a path found by a beam is a path: only the others need the full searches
+        board = _board_of(config)
+        tight = np.array([bounds[i] for i in tried])
+        zones = _ObstacleFuture(config, [parsed[i] for i in tried], board).zones(int(tight.max()))
+        starts = np.array([[r * board.width + c for r, c in (parsed[i].leader, *parsed[i].followers)] for i in tried],
+                          np.int32)
+        exist[tried] = _beam_exists(board, zones, starts, tight, BEAM_WIDTH)
+    rest = [i for i in tried if not exist[i]]
+    found = _first_moves_many([parsed[i] for i in rest], config, [limits[i] for i in rest], masks=False)
+    exist[rest] = [f is not None for f in found]
+    return exist
 
 
 def surviving_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: GameConfig,
@@ -157,6 +173,44 @@ def _first_moves_surviving(scenarios: Sequence[dict | Scenario], config: GameCon
         np.bitwise_or.at(firsts, inverse, carried)
         layer, owner = states[keep], owner[keep]
     return safe
+
+
+# States per scenario a layer of ``_beam_exists`` keeps.
+BEAM_WIDTH = 32
+
+
+def _beam_exists(board: _Board, zones: np.ndarray, starts: np.ndarray, deadlines: np.ndarray, width: int
+                 ) -> np.ndarray:
+    """Whether a beam search finds a success within ``deadlines[k]`` steps for each scenario (``zones[k]``,
+    ``starts[k]``): ``_search_first_moves`` keeping at most ``width`` states of a scenario per layer, spread
+    evenly over the layer's order. True proves a path; False proves nothing. Most ``paths_exist`` questions
+    (a teacher's first-step hypotheses) have many paths, and one is found at a small part of the cost."""
+    n_scenarios, n_cells = len(starts), board.height * board.width
+    layers = _Layers(board, starts)
+    layer, owner = layers.start, np.arange(n_scenarios)  # owner stays sorted: successors keep their parents' order
+    found = np.zeros(n_scenarios, bool)
+    for t in range(int(deadlines.max())):
+        parent, _, states = layers.successors(layer, zones[:, t + 1].reshape(-1), deadlines[owner] - t - 1,
+                                              offset=owner * n_cells)
+        owner = owner[parent]
+        success = layers.arrived(states)
+        if success.any():
+            found[owner[success]] = True
+            playing = ~found[owner]
+            states, owner = states[playing], owner[playing]
+        if len(states) == 0:
+            break
+        keep, _ = layers.groups(states, owner, inverse=False)
+        states, owner = states[keep], owner[keep]
+        begins = np.searchsorted(owner, np.arange(n_scenarios))
+        counts = np.diff(begins, append=len(owner))
+        if counts.max() > width:
+            stride = -(-counts // width)  # per scenario, keep every stride-th state
+            rank = np.arange(len(owner)) - begins[owner]
+            kept = rank % stride[owner] == 0
+            states, owner = states[kept], owner[kept]
+        layer = states
+    return found
 
 
 # the continuations ``_lockstep_survivors`` tries after a first move: every agent stay, forward, left, right

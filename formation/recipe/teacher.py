@@ -55,6 +55,7 @@ class Teacher:
         self._capped: dict[int, GameConfig] = {}
         self._robust_labels: dict[tuple, tuple[int, ...] | None] = {}
         self._found: dict[Scenario, set[tuple[int, ...]] | None] = {}  # _starts, oldest first
+        self._unsearched: list[Scenario] = []  # the robust first steps of the last labels()
         # the states on the shortest paths found: a rollout's next states are mostly among them
         self._ahead = FirstMovesAhead(config) if config.n_followers <= 2 else None
         destination, agents = config.destination[1], 1 + config.n_followers
@@ -105,7 +106,7 @@ class Teacher:
     def _starts(self, scenario: Scenario) -> set[tuple[int, ...]] | None:
         """The joint actions that start a shortest path within the slack (None: no path), from one
         search; the last few are kept, since a state's label and its answers need the same."""
-        self._find_starts([scenario])
+        self._find_starts(self._unsearched if scenario in self._unsearched else [scenario])
         return self._found[scenario]
 
     def _find_starts(self, scenarios: list[Scenario]) -> None:
@@ -134,7 +135,10 @@ class Teacher:
         """``label`` of every scenario (``first_steps[i]``: whether it is an episode's first step),
         with the shortest-path searches of the lot run at once."""
         if self.config.n_followers <= 2:
-            self._find_starts([s for s, first in zip(scenarios, first_steps) if not (first and self.robust_first_step)])
+            robust = [first and self.robust_first_step for first in first_steps]
+            self._find_starts([s for s, r in zip(scenarios, robust) if not r])
+            # answers to other leader moves than the robust label's need them: all searched at once when first asked
+            self._unsearched = [s for s, r in zip(scenarios, robust) if r]
         return [self.label(s, first) for s, first in zip(scenarios, first_steps)]
 
     def label(self, scenario: Scenario, first_step: bool = False) -> tuple[int, ...] | None:
@@ -208,7 +212,11 @@ class Teacher:
         return shortest_path(scenario, config=self._capped_config(limit))
 
     def _limit(self, scenario: Scenario) -> int:
-        return lower_bound(scenario, self.config) + self.slack
+        if not isinstance(scenario, Scenario):
+            return lower_bound(scenario, self.config) + self.slack
+        # lower_bound's own check of the scenario is left to the planner's search of it
+        (row, col), (dest_row, dest_col) = scenario.leader, self.config.destination
+        return max(row - dest_row, abs(col - dest_col)) + self.slack
 
     def _capped_config(self, max_steps: int) -> GameConfig:
         if max_steps not in self._capped:
