@@ -276,6 +276,22 @@ def test_searches_stepping_layers_as_codes_answer_as_those_stepping_cells(settin
     assert any(f is None for f in fast[0]) and any(f is not None for f in fast[0])
 
 
+@pytest.mark.parametrize("width", [1, 32])
+def test_paths_exist_answers_as_full_searches_whatever_its_beam_finds(width, monkeypatch):
+    """A beam only shortens the search where it finds a path: with a beam too narrow to find most paths or one
+    as wide as the planner's, ``paths_exist`` says what the full searches say, also where a limit is too short."""
+    config, states = greedy_play_states(1, 8, 30)
+    limits = [lower_bound(s, config) + (i % 4) * 2 - 1 for i, s in enumerate(states)]
+    full = [f is not None for f in shortest_first_moves_many(states, config=config, max_steps=limits)]
+    beams = []
+    monkeypatch.setattr(planner, "BEAM_WIDTH", width)
+    beam = planner._beam_exists
+    monkeypatch.setattr(planner, "_beam_exists", lambda *args: beams.append(beam(*args)) or beams[-1])
+    assert paths_exist(states, config=config, max_steps=limits).tolist() == full
+    found = np.concatenate(beams)
+    assert 0 < found.sum() < sum(full) if width == 1 else found.sum() > 0.9 * sum(full)
+
+
 @pytest.mark.parametrize("setting", [1, 2])
 def test_first_moves_ahead_answer_as_a_search_of_the_state_itself(setting):
     """States of epsilon-greedy play asked in order, one step's batch after another, with a ``FirstMovesAhead``
