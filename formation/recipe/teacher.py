@@ -56,6 +56,12 @@ class Teacher:
         self._robust_labels: dict[tuple, tuple[int, ...] | None] = {}
         self._found: dict[Scenario, set[tuple[int, ...]] | None] = {}  # _starts, oldest first
         self._unsearched: list[Scenario] = []  # the robust first steps of the last labels()
+        self._labelled: list[Scenario] = []  # the states of the last labels()
+        # _survives' joint actions (bit masks) from the planner's first step, as the game plays it, where no
+        # truncation can differ: no step limit at the first step, nor one below the leader's farthest way
+        self._surviving: dict[Scenario, int] | None = None
+        if config.n_followers <= 2 and config.max_steps >= max(config.height, config.width):
+            self._surviving = {}
         # the states on the shortest paths found: a rollout's next states are mostly among them
         self._ahead = FirstMovesAhead(config) if config.n_followers <= 2 else None
         destination, agents = config.destination[1], 1 + config.n_followers
@@ -123,6 +129,14 @@ class Teacher:
 
     def _survives(self, scenario: Scenario, joint: tuple[int, ...]) -> bool:
         """Whether the team is still playing, or has won, after ``joint``."""
+        if self._surviving is not None:
+            if scenario not in self._surviving:  # found for the whole last labels() batch at once
+                batch = self._labelled if scenario in self._labelled else [scenario]
+                if len(self._surviving) > 1024:
+                    self._surviving.clear()
+                masks = surviving_first_moves_many(batch, config=self.config, horizon=1)
+                self._surviving.update(zip(batch, masks.tolist()))
+            return bool(self._surviving[scenario] >> _joint_index(joint) & 1)
         probe = self._probe
         probe.load([scenario])
         probe.step(np.array([joint]))
@@ -139,6 +153,7 @@ class Teacher:
             self._find_starts([s for s, r in zip(scenarios, robust) if not r])
             # answers to other leader moves than the robust label's need them: all searched at once when first asked
             self._unsearched = [s for s, r in zip(scenarios, robust) if r]
+        self._labelled = list(scenarios)
         return [self.label(s, first) for s, first in zip(scenarios, first_steps)]
 
     def label(self, scenario: Scenario, first_step: bool = False) -> tuple[int, ...] | None:
@@ -222,6 +237,14 @@ class Teacher:
         if max_steps not in self._capped:
             self._capped[max_steps] = self.config.replace(max_steps=max_steps)
         return self._capped[max_steps]
+
+
+def _joint_index(joint: tuple[int, ...]) -> int:
+    """A joint action's bit in the planner's masks: the leader's move the most significant base-4 digit."""
+    index = 0
+    for move in joint:
+        index = index * len(MOVES) + move
+    return index
 
 
 def safety_labels(scenarios: list[Scenario], config: GameConfig, horizon: int) -> np.ndarray:
