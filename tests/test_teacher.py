@@ -297,13 +297,14 @@ def teacher_outputs(teacher, config, states, firsts):
 def test_the_teacher_tells_a_rollout_what_searches_of_each_state_alone_tell(setting, monkeypatch):
     """Along epsilon-greedy rollouts, the teacher's labels, answers, accepted joint actions and safety labels are those
     of a reference teacher that searches every state afresh (nothing kept from the searches of earlier states of
-    an episode) with layers of cells (no move table) and full searches only (no beam)."""
+    an episode) with layers of cells (no move table) and full searches only (no beam), and plays a step in the game
+    to see whether a joint action survives it."""
     config = GameConfig.from_setting(setting)
     told, asked = rollout_calls(Teacher(config, slack=6, robust_first_step=True), config, 25)
     monkeypatch.setattr(planner, "MOVE_TABLE_LIMIT", 0)
     monkeypatch.setattr(planner, "_beam_exists", lambda board, zones, starts, *_: np.zeros(len(starts), bool))
     reference = Teacher(config, slack=6, robust_first_step=True)
-    reference._ahead = None
+    reference._ahead = reference._surviving = None
     assert [teacher_outputs(reference, config, states, firsts) for states, firsts in asked] == told
     firsts = sum(f for _, fs in asked for f in fs)
     assert 8 < firsts < 100 and any(j is None for step in told for j in step[0])
