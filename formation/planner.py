@@ -176,7 +176,7 @@ def _first_moves_surviving(scenarios: Sequence[dict | Scenario], config: GameCon
 
 
 # States per scenario a layer of ``_beam_exists`` keeps.
-BEAM_WIDTH = 32
+BEAM_WIDTH = 16
 
 
 def _beam_exists(board: _Board, zones: np.ndarray, starts: np.ndarray, deadlines: np.ndarray, width: int

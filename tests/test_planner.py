@@ -276,7 +276,7 @@ def test_searches_stepping_layers_as_codes_answer_as_those_stepping_cells(settin
     assert any(f is None for f in fast[0]) and any(f is not None for f in fast[0])
 
 
-@pytest.mark.parametrize("width", [1, 32])
+@pytest.mark.parametrize("width", [1, planner.BEAM_WIDTH])
 def test_paths_exist_answers_as_full_searches_whatever_its_beam_finds(width, monkeypatch):
     """A beam only shortens the search where it finds a path: with a beam too narrow to find most paths or one
     as wide as the planner's, ``paths_exist`` says what the full searches say, also where a limit is too short."""
