@@ -91,7 +91,7 @@ def shortest_first_moves_many(scenarios: Sequence[dict | Scenario], *, config: G
     a layer's states are kept as 64-bit masks). With ``ahead`` (of the same config), the scenarios it
     knows are answered from it, and the states on the shortest paths found are added to it."""
     n_agents = _mask_agents(config)
-    parsed = [parse_scenario(s, config) for s in scenarios]
+    parsed = [_parse(s, config) for s in scenarios]
     found = _first_moves_many(parsed, config, max_steps, masks=True, ahead=ahead)
     return [None if f is None else (f[0], [_split(j, n_agents) for j in range(N_ACTIONS ** n_agents)
                                            if (f[1] >> j) & 1])
@@ -102,7 +102,7 @@ def paths_exist(scenarios: Sequence[dict | Scenario], *, config: GameConfig,
                 max_steps: Sequence[int] | None = None) -> np.ndarray:
     """Whether each scenario has a successful path of at most ``max_steps[i]`` steps (default:
     ``config.max_steps``): ``shortest_path(...) is not None`` for all of them, searched at once."""
-    parsed = [parse_scenario(s, config) for s in scenarios]
+    parsed = [_parse(s, config) for s in scenarios]
     limits = [config.max_steps] * len(parsed) if max_steps is None else [int(m) for m in max_steps]
     if len(limits) != len(parsed):
         raise ConfigError(f"max_steps: got {len(limits)} limits for {len(parsed)} scenarios")
@@ -139,7 +139,7 @@ def _first_moves_surviving(scenarios: Sequence[dict | Scenario], config: GameCon
     masks. With ``shortcut``, the first moves that a lockstep continuation shows safe
     (``_lockstep_survivors``) are not searched: the search starts from the others alone."""
     _mask_agents(config)
-    parsed = [parse_scenario(s, config) for s in scenarios]
+    parsed = [_parse(s, config) for s in scenarios]
     safe = np.zeros(len(parsed), np.uint64)  # the result: per scenario, its surviving first joint actions
     if not parsed:
         return safe
@@ -259,6 +259,23 @@ def _lockstep_survivors(board: _Board, zones: np.ndarray, starts: np.ndarray, st
             live &= ~done
     bits = np.uint64(1) << joints.astype(np.uint64)
     return np.bitwise_or.reduce(np.where(survived, bits, np.uint64(0)), axis=1)
+
+
+# Scenario objects found valid, per the config fields parse_scenario checks them against.
+_VALID: dict[tuple, Scenario] = {}
+
+
+def _parse(scenario: dict | Scenario, config: GameConfig) -> Scenario:
+    """``parse_scenario``, answered from the last few thousand ``Scenario`` objects it found valid: a teacher asks
+    about each state several times a step (its labels, answers and safety labels), each time checked alike."""
+    if not isinstance(scenario, Scenario):
+        return parse_scenario(scenario, config)
+    key = (scenario, config.height, config.width, config.n_followers, config.d_min, config.d_max)
+    if key not in _VALID:
+        if len(_VALID) >= 4096:
+            _VALID.clear()
+        _VALID[key] = parse_scenario(scenario, config)
+    return _VALID[key]
 
 
 def _mask_agents(config: GameConfig) -> int:

@@ -220,6 +220,16 @@ def test_many_scenarios_of_a_tiny_board_match_the_brute_force():
         assert None in lengths and len(set(lengths)) > 2
 
 
+def test_a_scenario_found_valid_for_one_config_is_checked_again_for_another():
+    config, states = played_states(3, range(1), 0)
+    assert shortest_first_moves_many(states, config=config)[0] is not None
+    assert surviving_first_moves_many(states, config=config, horizon=2)[0] > 0
+    with pytest.raises(ConfigError, match="off the 25x25 board"):
+        shortest_first_moves_many(states, config=GameConfig.from_setting(1))
+    with pytest.raises(ConfigError, match="off the 25x25 board"):
+        paths_exist(states, config=GameConfig.from_setting(1))
+
+
 def test_a_batch_needs_one_limit_per_scenario():
     config, states = played_states(1, range(2), 0)
     with pytest.raises(ConfigError, match="max_steps: got 1 limits for 2 scenarios"):
