@@ -7,7 +7,8 @@ order, robust first steps, slack 6): on episodes' first steps (the robust label:
 of the two obstacles nearest the leader tried, 16 hypotheses) and on later steps (states along
 the planner's path, every third step), labelled one state at a time (``Teacher.label``) and as a
 rollout actor does, 16 games at once (``Teacher.labels``: one shortest-path search for the lot).
-Each measurement has a teacher of its own, so no label comes from another's cache.
+Each measurement has a teacher of its own, so no label comes from another's cache; the planner's
+one-time setup for a board (its move table) is done before the first.
 """
 
 from __future__ import annotations
@@ -55,6 +56,8 @@ def main(n_games: int = 32) -> None:
     for setting in (1, 2, 3, 4):
         config = GameConfig.from_setting(setting)
         starts, later = states(config, n_games)
+        # once per process, not per label: what the planner builds for a board at its first search
+        Teacher(config, slack=6).labels(starts[:1], [False])
         for name, batch, first in (("first", starts, True), ("later", later, False)):
             alone, labels = ms_per_label(config, batch, first, batched=False)
             together, same = ms_per_label(config, batch, first, batched=True)
