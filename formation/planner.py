@@ -349,13 +349,17 @@ class FirstMovesAhead:
     shortest path found from an earlier state with those obstacles then (an earlier state of the same
     episode, as a rollout's next states mostly are) needs no search of its own: its shortest paths are
     the rest of those paths, of the length left, and its first moves their next steps. Kept per obstacles,
-    for the last ``capacity`` obstacle states added or asked for, as sorted state codes (``_Deduplicator``'s)
-    with the first moves of each (a bit mask)."""
+    for the last ``capacity`` obstacle states added or asked for (a rollout of 16 games needs about a thousand),
+    as sorted state codes (``_Deduplicator``'s) with the first moves of each (a bit mask)."""
 
-    def __init__(self, config: GameConfig, capacity: int = 8192):
-        _mask_agents(config)
+    def __init__(self, config: GameConfig, capacity: int = 4096):
+        n_agents = _mask_agents(config)
         self.config, self.capacity = config, capacity
         self._board = _board_of(config)
+        # the smallest kept: tens of megabytes at capacity with 64-bit codes and masks on a 50x50 board
+        n_codes = self._board.height * self._board.width * self._board.n_offsets ** (n_agents - 1)
+        self._code_type = np.int32 if n_codes < 2 ** 31 else np.int64
+        self._mask_type = np.uint16 if N_ACTIONS ** n_agents <= 16 else np.uint64
         self._tables: OrderedDict[tuple, list[tuple[np.ndarray, np.ndarray, int]]] = OrderedDict()
 
     def check(self, config: GameConfig) -> None:
@@ -381,7 +385,8 @@ class FirstMovesAhead:
         step t and a shortest path of length ``found[k][0]``."""
         for t, (codes, owner, masks) in enumerate(layers, start=1):
             order = np.lexsort((codes, owner))
-            codes, owner, masks = codes[order], owner[order], masks[order]
+            codes, owner = codes[order].astype(self._code_type), owner[order]
+            masks = masks[order].astype(self._mask_type)
             ends = [*np.flatnonzero(np.diff(owner)) + 1, len(owner)]
             for begin, end in zip([0, *ends[:-1]], ends):
                 if begin == end:
