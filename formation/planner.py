@@ -52,6 +52,8 @@ __all__ = ["FirstMovesAhead", "lower_bound", "paths_exist", "shortest_first_move
 N_ACTIONS = len(MOVES)
 # Largest state-code space deduplicated with a dense array (of indices); above it, np.unique.
 DENSE_CODES_LIMIT = 1 << 23
+# Largest scratch array of deduplication kept between searches (16 MB): 16 scenarios of a 50x50 board.
+KEPT_MARKS = 1 << 21
 # Largest move table (state codes x joint actions, int32 entries) the searches step layers with; above it
 # (two followers on a large board), layers are stepped as cells.
 MOVE_TABLE_LIMIT = 1 << 22
@@ -485,9 +487,12 @@ class _Board:
         self._scratch = threading.local()
 
     def marks(self, size: int) -> np.ndarray:
-        """A scratch array of ``size`` indices for ``_Deduplicator``, kept from one search to the next: a fresh
-        one of millions of entries costs a page fault per few hundred states marked. Per thread, and read
-        only where written in the same call, so what it held before never matters."""
+        """A scratch array of ``size`` indices for ``_Deduplicator``, up to ``KEPT_MARKS`` of them kept from one
+        search to the next: a fresh one of millions of entries costs a page fault per few hundred states
+        marked. Per thread, and read only where written in the same call, so what it held before never
+        matters. Larger ones are made for the search (int32, half the memory) and let go after it."""
+        if size > KEPT_MARKS:
+            return np.empty(size, np.int32)
         marks = getattr(self._scratch, "marks", None)
         if marks is None or len(marks) < size:
             marks = self._scratch.marks = np.empty(size, np.intp)
