@@ -46,6 +46,8 @@ def main() -> None:
     parser.add_argument("--records", type=int, default=4000, help="records in the replay")
     parser.add_argument("--gpu", action="store_true", help="update on the first GPU")
     args = parser.parse_args()
+    if args.gpu and not torch.cuda.is_available():
+        parser.exit(2, "error: --gpu: torch sees no CUDA device here\n")
     torch.set_num_threads(1)
     batches = [int(b) for b in args.batches.split(",")]
     run = RunConfig.load(args.config, {"resources.num_gpus_per_learner": 1 if args.gpu else 0})
