@@ -21,6 +21,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
 
+from formation.cli import counts  # noqa: E402
+from formation.config import ConfigError  # noqa: E402
 from formation.recipe.config import RunConfig  # noqa: E402
 from formation.recipe.replay import FrameReplay  # noqa: E402
 from formation.recipe.team import answers_leader, module_of_agent, spaces_of  # noqa: E402
@@ -38,10 +40,11 @@ def filled_replay(run: RunConfig, records: int) -> FrameReplay:
     return replay
 
 
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("config", nargs="?", default="configs/setting1.yaml")
-    parser.add_argument("--batches", default="32,128,512", help="batch sizes, comma-separated")
+    parser.add_argument("--batches", type=counts, default=[32, 128, 512], help="batch sizes, comma-separated")
     parser.add_argument("--updates", type=int, default=20, help="timed updates per batch size")
     parser.add_argument("--records", type=int, default=4000, help="records in the replay")
     parser.add_argument("--gpu", action="store_true", help="update on the first GPU")
@@ -49,8 +52,10 @@ def main() -> None:
     if args.gpu and not torch.cuda.is_available():
         parser.exit(2, "error: --gpu: torch sees no CUDA device here\n")
     torch.set_num_threads(1)
-    batches = [int(b) for b in args.batches.split(",")]
-    run = RunConfig.load(args.config, {"resources.num_gpus_per_learner": 1 if args.gpu else 0})
+    try:
+        run = RunConfig.load(args.config, {"resources.num_gpus_per_learner": 1 if args.gpu else 0})
+    except (ConfigError, OSError) as error:
+        parser.exit(2, f"error: {error}\n")
     replay = filled_replay(run, args.records)
     config = build_algorithm_config(run)
     agents = module_of_agent(run)
@@ -62,7 +67,7 @@ def main() -> None:
     print(f"{args.config}: learner on {name}; {replay.size} records in the replay")
     print(f"{'batch':>6} {'ms per update':>14} {'samples/s':>10}")
     t = run.train
-    for size in batches:
+    for size in args.batches:
         samples = [replay.sample(size, n_step=t.n_step, gamma=t.gamma) for _ in range(3)]
         for sample in samples:  # warm-up: caches, kernels, the optimizer's state
             learner.update_on(dict(sample))

@@ -26,7 +26,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import ray  # noqa: E402
 
-from formation.cli import parse_overrides  # noqa: E402
+from formation.cli import counts, parse_overrides  # noqa: E402
 from formation.config import ConfigError  # noqa: E402
 from formation.recipe.config import RunConfig  # noqa: E402
 from formation.rllib.algorithm import build_algorithm_config  # noqa: E402
@@ -110,13 +110,14 @@ def array_bytes(obj, seen=None) -> int:
     return total
 
 
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--warmup", type=int, default=2000, help="env steps before timing")
     parser.add_argument("--recipe", help="a training config: time only its own path (formation)")
-    parser.add_argument("--sampling", metavar="ACTORS", help="only sampling alone, with these numbers of rollout "
-                        "actors (comma-separated)")
+    parser.add_argument("--sampling", metavar="ACTORS", type=counts,
+                        help="only sampling alone, with these numbers of rollout actors (comma-separated)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="with --recipe: change a setting of the config, as formation train --set")
     args = parser.parse_args()
@@ -135,7 +136,7 @@ def main() -> None:
                   f"{args.seconds:g} s after {args.warmup} env steps")
             return
         if args.sampling:
-            sampling([int(n) for n in args.sampling.split(",")], args.seconds, args.warmup)
+            sampling(args.sampling, args.seconds, args.warmup)
             return
         print(f"setting 1, pixels, 4 stacked screens, replay ratio {BASE['train']['replay_ratio']}, "
               f"batch {BASE['train']['batch_size']}, 1 rollout actor x {BASE['resources']['games_per_actor']} games, "

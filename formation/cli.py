@@ -23,6 +23,17 @@ from formation.storage import (
 CHECKPOINT_HELP = "a run folder (or its storage URI), its checkpoint/ folder, or a `formation export` folder"
 
 
+def counts(text: str) -> list[int]:
+    """Comma-separated whole numbers above 0, as an argparse type (the benchmarks' lists of sizes)."""
+    try:
+        values = [int(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: allowed: whole numbers above 0, comma-separated")
+    return values
+
+
 def parse_overrides(pairs: list[str]) -> dict[str, Any]:
     """``key=value`` strings with YAML values (``d_max=5``, ``obs_type=grid``, ``leader_start=[9,3]``)."""
     out: dict[str, Any] = {}

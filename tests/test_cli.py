@@ -3,6 +3,7 @@
 import subprocess
 import sys
 
+import pytest
 from PIL import Image
 
 from formation.cli import main
@@ -66,3 +67,14 @@ def test_version_falls_back_to_the_source_tree_when_not_installed(monkeypatch):
 
     monkeypatch.setattr(importlib.metadata, "version", not_installed)
     assert cli.version() == formation.__version__
+
+
+def test_the_benchmarks_lists_of_sizes_are_whole_numbers_above_zero():
+    import argparse
+
+    from formation.cli import counts
+
+    assert counts("1,2,4,8,14") == [1, 2, 4, 8, 14]
+    for bad in ("", "0", "1,x", "2.5", "-1"):
+        with pytest.raises(argparse.ArgumentTypeError, match="allowed: whole numbers above 0"):
+            counts(bad)
