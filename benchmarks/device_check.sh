@@ -3,7 +3,7 @@
 #   1. the learner's samples per second on the GPU, at batch sizes from 32 to 2048;
 #   2. sampling env steps/s with 1, 2, 4, 8 and 14 rollout actors, the learner idle;
 #   3. the whole path on configs/setting1.yaml (its teacher included) with 14 rollout actors and the
-#      GPU learner.
+#      GPU learner, with its account of every second (benchmarks/where_time_goes.py).
 # The same code path as on a CPU: only resources.num_gpus_per_learner and the actors change.
 #
 # Here, first: bash benchmarks/device_bundle.sh (Ray and the other packages that machine lacks).
@@ -24,7 +24,7 @@ echo "== 1. the learner on the GPU (benchmarks/learner_samples.py)"
 timeout 120 $PY benchmarks/learner_samples.py configs/setting1.yaml --gpu --batches 32,128,512,2048 --updates 20
 echo "== 2. sampling alone (benchmarks/train_throughput.py --sampling)"
 timeout 150 $PY benchmarks/train_throughput.py --sampling 1,2,4,8,14 --seconds 12 --warmup 500
-echo "== 3. the whole path: configs/setting1.yaml, 14 rollout actors, the GPU learner"
-timeout 180 $PY benchmarks/train_throughput.py --recipe configs/setting1.yaml --seconds 90 --warmup 3000 \
+echo "== 3. the whole path: configs/setting1.yaml, 14 rollout actors, the GPU learner (benchmarks/where_time_goes.py)"
+timeout 180 $PY benchmarks/where_time_goes.py configs/setting1.yaml --env-steps 12000 --cores "$(nproc)" \
   --set resources.num_rollout_actors=14 --set resources.cpus_per_rollout_actor=1 \
   --set resources.num_gpus_per_learner=1
