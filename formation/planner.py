@@ -63,8 +63,7 @@ def lower_bound(scenario: dict | Scenario, config: GameConfig | None = None) -> 
     """Steps the leader needs to reach the destination ignoring obstacles and followers:
     its rows to go, or its columns to go if more (a step changes each by at most one)."""
     config = config or GameConfig()
-    leader = parse_scenario(scenario, config).leader
-    return _steps_to_go(leader, config)
+    return _steps_to_go(_parse(scenario, config).leader, config)
 
 
 def shortest_path(scenario: dict | Scenario, setting: int | None = 1, *, config: GameConfig | None = None,

@@ -227,11 +227,7 @@ class Teacher:
         return shortest_path(scenario, config=self._capped_config(limit))
 
     def _limit(self, scenario: Scenario) -> int:
-        if not isinstance(scenario, Scenario):
-            return lower_bound(scenario, self.config) + self.slack
-        # lower_bound's own check of the scenario is left to the planner's search of it
-        (row, col), (dest_row, dest_col) = scenario.leader, self.config.destination
-        return max(row - dest_row, abs(col - dest_col)) + self.slack
+        return lower_bound(scenario, self.config) + self.slack
 
     def _capped_config(self, max_steps: int) -> GameConfig:
         if max_steps not in self._capped:
