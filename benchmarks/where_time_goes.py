@@ -98,7 +98,7 @@ def alone(run: RunConfig, env_steps: int, trained: dict) -> dict:
     t = run.train
     for i in range(updates + 3):
         if i == 3:  # the first updates build RLlib's and torch's caches
-            learner._clock.pop()
+            learner.clock.pop()
             clock.pop()
         with clock("sample"):
             batch = replay.sample(t.batch_size, n_step=t.n_step, gamma=t.gamma)
@@ -106,7 +106,7 @@ def alone(run: RunConfig, env_steps: int, trained: dict) -> dict:
         if priority is not None:
             with clock("priorities"):
                 replay.update_priorities(batch["ids"], priority)
-    account["learner"] = learner._clock.pop()
+    account["learner"] = learner.clock.pop()
     account["replay"] = {**inserts.pop(), **clock.pop()}
     return {"account": account, "env_steps": done, "updates": updates}
 

@@ -110,7 +110,7 @@ class FormationLearner(DQNTorchLearner):
         self._turn = 0
         self._priority: dict[str, np.ndarray] = {}
         self._stats: dict[str, dict[str, float]] = {}
-        self._clock = Stopwatch()
+        self.clock = Stopwatch()
         self.num_updates = getattr(self, "num_updates", 0)
         return True
 
@@ -133,7 +133,7 @@ class FormationLearner(DQNTorchLearner):
         """Run up to ``num_updates`` updates on batches pulled from the replay. Returns the reduced
         ``metrics``, the ``updates`` run, and the ``incarnations`` of the replays seen (index ->
         id). It stops early when a replay holds fewer than ``min_records`` (it restarted empty)."""
-        cfg, clock = self.config, self._clock
+        cfg, clock = self.config, self.clock
         done, seen = 0, {}
         for _ in range(num_updates):
             if self._prefetch is None:
@@ -157,7 +157,7 @@ class FormationLearner(DQNTorchLearner):
     def update_on(self, sample: dict) -> np.ndarray | None:
         """One update of every module on a replay batch (``FrameReplay.sample``); returns the batch's new
         priorities (None without ``train.prioritized``)."""
-        clock = self._clock
+        clock = self.clock
         with clock("batch"):
             batches = module_batches(sample, self._module_of_agent, self._answering,
                                      self._any_shortest_move, self._safety)
