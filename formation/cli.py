@@ -157,6 +157,9 @@ def cmd_refit(args: argparse.Namespace) -> int:
     saved = path / "config.yaml"  # a run folder's refit section; an export's: the defaults
     values = RunConfig.load_saved(saved).to_dict()["refit"] if saved.is_file() else {}
     settings = section_of("refit", {**values, **{k.partition(".")[2]: v for k, v in overrides.items()}})
+    if not settings.rounds:
+        raise ConfigError(f"refit.rounds: 0 ({args.checkpoint} names no refit phase); allowed: --set refit.rounds=N "
+                          "with N >= 1")
     print(f"refitting the safety heads of {args.checkpoint}: {settings.rounds} round(s) of {settings.episodes:,} "
           f"games, labels over {settings.horizon} steps, planner workers: {settings.workers or 'one per core'}",
           flush=True)

@@ -1,7 +1,7 @@
 """Trained policies outside training: restore a run's greedy team from its checkpoint or from an export.
 
-    policy = load("runs/s1")             # a run folder of `formation train` (config.yaml, checkpoint/)
-    policy = load("runs/s1/checkpoint")  # the checkpoint inside one
+    policy = load("runs/s1")             # a run folder of `formation train`: its final team
+    policy = load("runs/s1/checkpoint")  # the checkpoint inside one: the networks as trained
     policy = load("exports/s1")          # a folder written by `formation export` (policy.json, <module>.pt)
 
     env = formation.env.parallel_env(**policy.env_config)
@@ -45,7 +45,9 @@ from formation.shield import Shield, shielded_moves
 FORMAT_VERSION = 1
 CARD = "policy.json"
 RL_MODULES = Path("checkpoint") / "learner_group" / "learner" / "rl_module"
-CHECKPOINT_STATE = Path("checkpoint") / "algorithm_state.pkl"  # the counters, among RLlib's own state
+CHECKPOINT_STATE = Path("checkpoint") / "algorithm_state.pkl"
+# a run whose config has a refit phase keeps its final team here, as an export (``formation.train``)
+REFITTED = "refitted"  # the counters, among RLlib's own state
 DEFAULT_EVAL = {"episodes": 200, "seed": 1_000_000}
 DEFAULT_VETO_THRESHOLD = 0.5  # what training's heads are fitted to: the better guess of safe or not
 TRAINING = "training.json"  # a run folder's training record (``formation.train.training_record``)
@@ -231,7 +233,9 @@ def export(policy: Policy, out: str | Path, half: bool = False) -> Path:
 
 
 def load(path: str | Path) -> Policy:
-    """A run folder, the ``checkpoint/`` inside one, or an exported policy folder -> ``Policy``."""
+    """A run folder, the ``checkpoint/`` inside one, or an exported policy folder -> ``Policy``. A run folder
+    whose training ended with a refit phase gives its refitted team (``refitted/``); its ``checkpoint/``, the
+    networks as trained."""
     path = Path(path)
     if not path.exists():
         raise PolicyError(f"checkpoint: no such file or folder {str(path)!r}")
@@ -241,7 +245,7 @@ def load(path: str | Path) -> Policy:
     if (path / CARD).is_file():
         return _load_export(path)
     if (path / "config.yaml").is_file() and (path / RL_MODULES.parts[0]).is_dir():
-        return _load_run(path)
+        return _load_export(path / REFITTED) if (path / REFITTED / CARD).is_file() else _load_run(path)
     if path.name == RL_MODULES.parts[0] and (path.parent / "config.yaml").is_file():
         return _load_run(path.parent)
     raise PolicyError(f"checkpoint: {str(path)!r} is not a checkpoint; give a run folder (config.yaml, "

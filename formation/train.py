@@ -263,10 +263,49 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         algo.stop()
     if not quiet:
         progress.show(algo.counters["env_steps"], summary["success"], 0.0, final=True)
+    if run.refit.rounds:  # after Ray has stopped, so that the refit's planner workers have the cores
+        summary = refit_phase(out_dir, run, say=(lambda line: None) if quiet else
+                              (lambda line: print(line, flush=True)))
+        if remote is not None:
+            remote.push()
+    if not quiet:
         print(f"greedy success {summary['success']:.1%} on {summary['episodes']} held-out scenarios; "
               f"run folder {out if remote is not None else out_dir}")
         if gif is not None:
             print(f"greedy episodes: {f'{out}/{gif.name}' if remote is not None else gif}")
+    return summary
+
+
+# ---------------------------------------------------------------------- the refit phase
+def refit_phase(out_dir: Path, run: RunConfig, say: Callable[[str], None]) -> dict:
+    """The run's last phase (``refit:`` with ``rounds`` > 0): the trained team's safety heads refitted
+    (``formation.recipe.safety_refit``), evaluated greedily as training's evaluations are, and kept in
+    ``refitted/`` as an export whose card records the training, the refit and that evaluation. A refitted team
+    already there is replaced only once the new one is whole. Returns the evaluation's summary."""
+    from formation.evaluate import play_greedy
+    from formation.policy import REFITTED, export, load
+    from formation.recipe.safety_refit import refit
+    from formation.storage import writing_folder
+
+    policy = load(checkpoint_path(out_dir))
+    say(f"refit: {run.refit.rounds} round(s) of {run.refit.episodes:,} games, labels over {run.refit.horizon} steps")
+    started = now()
+    report = refit(policy, run.refit, say=say)
+    clock = time.monotonic()
+    summary = play_greedy(policy.game, policy.act_batch, run.eval.episodes, run.eval.seed)["summary"]
+    report.update(started=started, ended=now(), commit=code_commit(), hardware=hardware(),
+                  evaluation={"seed": run.eval.seed, "greedy": summary})
+    report["seconds"] += time.monotonic() - clock
+    policy.refit_report = report
+    final, fresh = out_dir / REFITTED, out_dir / f"{REFITTED}.new"
+    shutil.rmtree(fresh, ignore_errors=True)  # what an interrupted refit left
+    with writing_folder(fresh) as folder:
+        export(policy, folder)
+    if final.exists():
+        shutil.rmtree(final)
+    os.rename(fresh, final)
+    say(f"refitted in {report['seconds'] / 60:.1f} min: greedy success {summary['success']:.1%} on "
+        f"{summary['episodes']} held-out scenarios; the team: {final}")
     return summary
 
 

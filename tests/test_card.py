@@ -135,7 +135,7 @@ def test_a_refit_keeps_the_training_section_and_adds_its_own(smoke_run, tmp_path
 
     monkeypatch.setattr(safety_refit, "check_refittable", lambda policy, name=None: None)
     monkeypatch.setattr(safety_refit, "refit", lambda policy, settings, say: {"rounds": [], "seconds": 1.0})
-    assert main(["refit", str(smoke_run), str(tmp_path / "refitted")]) == 0
+    assert main(["refit", str(smoke_run), str(tmp_path / "refitted"), "--set", "refit.rounds=1"]) == 0
     card = json.loads((tmp_path / "refitted" / "policy.json").read_text())
     assert card["training"] == load(smoke_run).training
     assert COMMIT.fullmatch(card["refit"]["commit"]) and card["refit"]["hardware"]["cpus"] >= 1

@@ -46,7 +46,7 @@ def screens(setting: int, games: int = 16, steps: int = 5) -> np.ndarray:
 
 
 @pytest.mark.parametrize("key,value,message", [
-    ("rounds", 0, "refit.rounds: 0 is not allowed; allowed: an integer >= 1"),
+    ("rounds", -1, "refit.rounds: -1 is not allowed; allowed: an integer >= 0"),
     ("epsilon", 1.5, "refit.epsilon: 1.5 is not allowed; allowed: a number in [0.0, 1.0]"),
     ("horizon", "far", "refit.horizon: 'far' is not allowed; allowed: an integer >= 1"),
     ("epochs", 0, "refit.epochs: 0 is not allowed; allowed: a number in (0.0, 1000.0]"),
@@ -58,11 +58,44 @@ def test_a_bad_refit_setting_is_one_line(key, value, message):
     assert str(err.value) == message
 
 
+def test_a_refit_phase_needs_safety_heads_to_refit():
+    assert RunConfig.load(SMOKE).refit.rounds == 0  # no refit phase unless the config names one
+    with pytest.raises(ConfigError) as err:
+        RunConfig.load(SMOKE, {"refit.rounds": 1})
+    assert str(err.value) == ("refit.rounds: 1 refits safety heads, and train.safety_horizon: 0 trains none; "
+                              "allowed: 0, or a train.safety_horizon > 0")
+
+
+def test_training_ends_with_the_refit_phase_its_config_names(cluster, tmp_path):
+    from formation.policy import REFITTED
+    from formation.train import refit_phase, train
+
+    out = tmp_path / "run"
+    summary = train(SMOKE, str(out), quiet=True, overrides={
+        "train.safety_horizon": 2, "train.total_env_steps": 1500, "refit.rounds": 1, "refit.episodes": 30,
+        "refit.horizon": 2, "refit.holdout_episodes": 10, "refit.workers": 1})
+    team, trained = load(out), load(out / "checkpoint")  # the run's final team; the networks as trained
+    report = team.refit_report
+    assert report["evaluation"] == {"seed": 1_000_000, "greedy": summary}
+    assert report["settings"]["episodes"] == 30 and report["seconds"] > 0 and report["hardware"]
+    assert (team.veto_threshold, trained.veto_threshold, trained.refit_report) == (0.97, 0.5, None)
+    assert team.training["config"]["refit"]["rounds"] == 1 and team.training["wall_seconds"] > 0
+    for module, net in team.networks.items():  # the heads were refitted, the Q-values kept as trained
+        before = trained.networks[module].state_dict()
+        heads = {name for name in before if name.startswith(("safety.", "safety_encoder."))}
+        assert heads and all(torch.equal(v, before[k]) for k, v in net.state_dict().items() if k not in heads)
+        assert any(not torch.equal(net.state_dict()[k], before[k]) for k in heads)
+    # a refit again (a --resume after more training does one) replaces the team whole
+    refit_phase(out, RunConfig.load_saved(out / "config.yaml", {"refit.episodes": 20}), say=lambda line: None)
+    assert load(out).refit_report["settings"]["episodes"] == 20
+    assert [p.name for p in out.iterdir() if p.name.startswith(REFITTED)] == [REFITTED]
+
+
 @pytest.mark.parametrize("seed,bad", [(2_000_000, True), (1_999_996, True), (2_000_001, True), (1_999_995, False),
                                       (2_000_002, False), (10_000_000, False)])
 def test_a_refit_never_plays_the_evaluations_scenarios(seed, bad):
     # 5 rounds of 1000 games take seeds seed..seed+4, the 300 held-out games seed-1: none may be 2e6 (the test set)
-    overrides = {"refit.seed": seed, "refit.rounds": 5, "refit.episodes": 1000}
+    overrides = {"refit.seed": seed, "refit.rounds": 5, "refit.episodes": 1000, "train.safety_horizon": 4}
     if bad:
         with pytest.raises(ConfigError, match=rf"^refit\.seed: {seed} is not allowed; its games would use seeds "
                                               rf"{seed - 1}\.\.{seed + 4}, which hold the evaluations' scenarios"):
@@ -182,6 +215,7 @@ def test_the_command_refits_an_export_into_a_new_folder(tmp_path, capsys):
     ("train.lr=0.1", "--set train.lr: refit takes refit.* keys only"),
     ("refit.speed=2", "refit.speed: unknown key; allowed: batch_size, episodes, epochs"),
     ("refit.episodes=-3", "refit.episodes: -3 is not allowed; allowed: an integer >= 1"),
+    ("refit.epochs=2", "names no refit phase); allowed: --set refit.rounds=N with N >= 1"),
 ])
 def test_the_commands_bad_input_is_one_line(tmp_path, capsys, setting, message):
     export(grid_team(), tmp_path / "team")

@@ -6,7 +6,7 @@
     resources: {num_rollout_actors: 1, games_per_actor: 32, num_gpus_per_learner: 0}
     eval:      {every_env_steps: 25000, episodes: 200}
     checkpoint: {every_iterations: 10}
-    refit:     {rounds: 2, episodes: 5000, horizon: 8}          # formation refit (after training)
+    refit:     {rounds: 2, episodes: 5000, horizon: 8}          # the refit phase after training
 
 ``--set train.gamma=0.99`` style overrides use the same dotted names.
 """
@@ -248,16 +248,17 @@ class EvalSettings:
 
 @dataclass(frozen=True)
 class RefitSettings:
-    """``formation refit``: the safety heads of a trained team fitted again on many fresh states of its own
-    play, labelled by the planner (formation.recipe.safety_refit; docs/lab/TRAINING.md "Refitting the safety
-    heads"). Each round plays ``episodes`` games with the team as it is (vetoed greedy, a random joint move in
-    an ``epsilon`` share of the steps), labels every state with the joint moves that start ``horizon`` steps
-    free of collisions and formation breaks, and fits the heads alone (and their own encoders) for ``epochs``
-    passes over every state gathered so far; the Q-values do not change. The refitted team's veto then keeps
-    to the joint moves the heads judge safe with a probability above ``veto_threshold``, and where none is, to
-    those ``veto_fallback`` names (``formation.policy.within_veto``)."""
+    """The refit phase that ends ``formation train`` when ``rounds`` > 0, and ``formation refit``: the safety
+    heads of a trained team fitted again on many fresh states of its own play, labelled by the planner
+    (formation.recipe.safety_refit; docs/lab/TRAINING.md "Refitting the safety heads"). Each round plays
+    ``episodes`` games with the team as it is (vetoed greedy, a random joint move in an ``epsilon`` share of the
+    steps), labels every state with the joint moves that start ``horizon`` steps free of collisions and
+    formation breaks, and fits the heads alone (and their own encoders) for ``epochs`` passes over every state
+    gathered so far; the Q-values do not change. The refitted team's veto then keeps to the joint moves the
+    heads judge safe with a probability above ``veto_threshold``, and where none is, to those ``veto_fallback``
+    names (``formation.policy.within_veto``)."""
 
-    rounds: int = 2  # rounds of play, label and fit
+    rounds: int = 0  # rounds of play, label and fit; 0: formation train ends without a refit phase
     episodes: int = 5_000  # games per round
     epsilon: float = 0.03  # share of the steps the refit's games play a random joint move
     horizon: int = 8  # the heads learn which joint moves start this many safe steps
@@ -276,7 +277,7 @@ class RefitSettings:
         if self.veto_fallback not in VETO_FALLBACKS:
             raise ConfigError(f"refit.veto_fallback: {self.veto_fallback!r} is not allowed; allowed: "
                               f"{', '.join(VETO_FALLBACKS)}")
-        for name, low in (("rounds", 1), ("episodes", 1), ("horizon", 1), ("batch_size", 1),
+        for name, low in (("rounds", 0), ("episodes", 1), ("horizon", 1), ("batch_size", 1),
                           ("holdout_episodes", 0), ("seed", 0), ("workers", 0)):
             _integer(self, name, low, section="refit")
         _number(self, "epsilon", 0.0, 1.0, section="refit")
@@ -326,6 +327,9 @@ class RunConfig:
         if self.train.any_shortest_move != "none" and self.game.n_followers != 1:
             raise ConfigError(f"train.any_shortest_move: {self.train.any_shortest_move} needs game.n_followers: 1 "
                               f"(not {self.game.n_followers}); allowed: none")
+        if self.refit.rounds and not self.train.safety_horizon:
+            raise ConfigError(f"refit.rounds: {self.refit.rounds} refits safety heads, and train.safety_horizon: 0 "
+                              "trains none; allowed: 0, or a train.safety_horizon > 0")
         if self.train.safety_horizon and self.game.n_followers != 1:
             raise ConfigError(f"train.safety_horizon: {self.train.safety_horizon} needs game.n_followers: 1 "
                               f"(not {self.game.n_followers}); allowed: 0")
