@@ -187,7 +187,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     import time
 
     from formation.evaluate import evaluate_policy, format_report
-    from formation.policy import load, training_line
+    from formation.policy import how_trained, load, training_line
 
     for name in ("episodes", "workers"):
         value = getattr(args, name)
@@ -229,7 +229,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     report = {"checkpoint": str(args.checkpoint), "setting": trained_on, "env_steps": policy.env_steps,
               "shield": args.shield, "veto_threshold": policy.veto_threshold if policy.learned_veto else None,
               "veto_fallback": policy.veto_fallback if policy.learned_veto else None,
-              **report}
+              "trained": how_trained(policy), **report}
     print(f"{args.checkpoint}: {episodes} greedy episodes"
           + (f" after {policy.env_steps:,} env steps" if policy.env_steps is not None else "")
           + (f", behind a shield of {args.shield} steps" if args.shield else "")

@@ -405,6 +405,23 @@ def _load_export(folder: Path) -> Policy:
     return policy
 
 
+def how_trained(policy: Policy) -> dict | None:
+    """What an evaluation report keeps of how ``policy`` was made (None for a card without a training section):
+    the run's ``train.seed``, its env steps, the wall seconds of training and of every refit after it (None
+    where none was), and the hardware of training."""
+    training = policy.training
+    if not training:
+        return None
+    refit, refit_seconds = policy.refit_report, None
+    while isinstance(refit, dict) and isinstance(refit.get("seconds"), int | float):
+        refit_seconds = (refit_seconds or 0.0) + refit["seconds"]
+        refit = refit.get("earlier")
+    train = (training.get("config") or {}).get("train") or {}
+    return {"seed": train.get("seed"), "env_steps": training.get("env_steps"),
+            "wall_seconds": training.get("wall_seconds"), "refit_seconds": refit_seconds,
+            "hardware": training.get("hardware")}
+
+
 def training_line(training: dict | None) -> str | None:
     """One line of how a policy was trained, e.g. ``trained: 200,064 env steps in 3.2 h on AMD EPYC 7B13
     (16 CPUs), NVIDIA H100 x1, 1 Ray node; commit 419508c``; None without a training section."""

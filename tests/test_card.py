@@ -140,3 +140,10 @@ def test_a_refit_keeps_the_training_section_and_adds_its_own(smoke_run, tmp_path
     assert card["training"] == load(smoke_run).training
     assert COMMIT.fullmatch(card["refit"]["commit"]) and card["refit"]["hardware"]["cpus"] >= 1
     assert card["refit"]["started"] <= card["refit"]["ended"] and card["refit"]["seconds"] == 1.0
+    # an evaluation report counts every refit's time after training's (a refit of a refit: both)
+    from formation.policy import how_trained
+
+    refitted = load(tmp_path / "refitted")
+    refitted.refit_report = {"seconds": 2.0, "earlier": refitted.refit_report}
+    trained = how_trained(refitted)
+    assert trained["refit_seconds"] == 3.0 and trained["wall_seconds"] == card["training"]["wall_seconds"]

@@ -42,6 +42,10 @@ def test_evaluate_is_reproducible_and_matches_trainings_final_evaluation(run_dir
     assert (a["episodes"], a["seed"]) == (run.eval.episodes, run.eval.seed)
     result = json.loads((run_dir / "result.json").read_text())
     assert a["env_steps"] == result["env_steps"]
+    # how the team was made, for the results tables: the run's seed, env steps, wall time and hardware
+    trained = a["trained"]
+    assert (trained["seed"], trained["env_steps"], trained["refit_seconds"]) == (run.train.seed, a["env_steps"], None)
+    assert trained["wall_seconds"] > 0 and trained["hardware"]["cpus"] >= 1
     # the same episodes as training's final greedy evaluation: every number of its summary agrees
     assert a["success"] == result["greedy"]["success"]
     for key, value in result["greedy"].items():

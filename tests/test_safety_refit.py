@@ -33,6 +33,12 @@ def grid_team(safety_encoder: bool = True, safety: bool = True) -> Policy:
                   ["leader", "follower"], "test")
 
 
+def screens_of_grid(games: int = 16) -> np.ndarray:
+    game = BatchedGame(GRID, batch_size=games, seed=1)
+    game.reset()
+    return Observer(game).observe(np.ones(games, bool))
+
+
 def screens(setting: int, games: int = 16, steps: int = 5) -> np.ndarray:
     game = BatchedGame(GameConfig.from_setting(setting), batch_size=games, seed=1)
     game.reset()
@@ -58,12 +64,29 @@ def test_a_bad_refit_setting_is_one_line(key, value, message):
     assert str(err.value) == message
 
 
-def test_a_refit_phase_needs_safety_heads_to_refit():
-    assert RunConfig.load(SMOKE).refit.rounds == 0  # no refit phase unless the config names one
+def test_a_refit_phase_is_off_unless_the_config_names_one_and_needs_one_follower():
+    assert RunConfig.load(SMOKE).refit.rounds == 0
     with pytest.raises(ConfigError) as err:
-        RunConfig.load(SMOKE, {"refit.rounds": 1})
-    assert str(err.value) == ("refit.rounds: 1 refits safety heads, and train.safety_horizon: 0 trains none; "
-                              "allowed: 0, or a train.safety_horizon > 0")
+        RunConfig.load(SMOKE, {"game.n_followers": 2, "refit.rounds": 1})
+    assert str(err.value) == "refit.rounds: 1 needs game.n_followers: 1 (not 2); allowed: 0"
+
+
+def test_heads_added_to_a_team_without_them_start_from_its_encoders_and_leave_its_moves_alone():
+    from formation.recipe.safety_refit import add_safety_heads
+
+    team = grid_team(safety=False, safety_encoder=False)
+    obs = screens_of_grid()
+    before = team.act_batch(obs)
+    weights = {m: {k: v.clone() for k, v in net.state_dict().items()} for m, net in team.networks.items()}
+    assert add_safety_heads(team) == ["follower", "leader"] and not team.learned_veto
+    for module, net in team.networks.items():
+        assert team.specs[module].safety and team.specs[module].safety_encoder and net.spec == team.specs[module]
+        state = net.state_dict()
+        assert all(torch.equal(state[k], v) for k, v in weights[module].items())  # every trained weight kept
+        copied = net.safety_encoder[0].state_dict()
+        assert all(torch.equal(v, net.encoder.state_dict()[k]) for k, v in copied.items())
+    assert (team.act_batch(obs) == before).all()  # no veto until the heads are fitted
+    assert add_safety_heads(team) == []  # a team with heads keeps them
 
 
 def test_training_ends_with_the_refit_phase_its_config_names(cluster, tmp_path):
@@ -72,19 +95,19 @@ def test_training_ends_with_the_refit_phase_its_config_names(cluster, tmp_path):
 
     out = tmp_path / "run"
     summary = train(SMOKE, str(out), quiet=True, overrides={
-        "train.safety_horizon": 2, "train.total_env_steps": 1500, "refit.rounds": 1, "refit.episodes": 30,
-        "refit.horizon": 2, "refit.holdout_episodes": 10, "refit.workers": 1})
+        "train.total_env_steps": 1500, "refit.rounds": 1, "refit.episodes": 30, "refit.horizon": 2,
+        "refit.holdout_episodes": 10, "refit.workers": 1})
     team, trained = load(out), load(out / "checkpoint")  # the run's final team; the networks as trained
     report = team.refit_report
     assert report["evaluation"] == {"seed": 1_000_000, "greedy": summary}
     assert report["settings"]["episodes"] == 30 and report["seconds"] > 0 and report["hardware"]
-    assert (team.veto_threshold, trained.veto_threshold, trained.refit_report) == (0.97, 0.5, None)
+    assert report["heads_added"] == ["follower", "leader"] and team.learned_veto and not trained.learned_veto
+    assert (team.veto_threshold, trained.refit_report) == (0.97, None)
     assert team.training["config"]["refit"]["rounds"] == 1 and team.training["wall_seconds"] > 0
-    for module, net in team.networks.items():  # the heads were refitted, the Q-values kept as trained
-        before = trained.networks[module].state_dict()
-        heads = {name for name in before if name.startswith(("safety.", "safety_encoder."))}
-        assert heads and all(torch.equal(v, before[k]) for k, v in net.state_dict().items() if k not in heads)
-        assert any(not torch.equal(net.state_dict()[k], before[k]) for k in heads)
+    for module, net in team.networks.items():  # heads added and fitted, the Q-values kept as trained
+        before, after = trained.networks[module].state_dict(), net.state_dict()
+        assert all(torch.equal(v, after[k]) for k, v in before.items())
+        assert not torch.equal(after["safety_encoder.0.0.weight"], after["encoder.0.weight"])
     # a refit again (a --resume after more training does one) replaces the team whole
     refit_phase(out, RunConfig.load_saved(out / "config.yaml", {"refit.episodes": 20}), say=lambda line: None)
     assert load(out).refit_report["settings"]["episodes"] == 20
@@ -225,13 +248,18 @@ def test_the_commands_bad_input_is_one_line(tmp_path, capsys, setting, message):
     assert not (tmp_path / "out").exists()
 
 
-def test_a_team_without_safety_heads_or_a_missing_one_is_one_line(tmp_path, capsys):
+def test_the_command_gives_a_team_without_safety_heads_fitted_ones_and_a_missing_team_is_one_line(tmp_path, capsys):
     export(grid_team(safety=False, safety_encoder=False), tmp_path / "plain")
-    assert main(["refit", str(tmp_path / "plain"), str(tmp_path / "out")]) == 2
-    assert f"refit: {tmp_path / 'plain'} has no safety heads" in capsys.readouterr().err
-    assert main(["refit", str(tmp_path / "nothing"), str(tmp_path / "out")]) == 2
+    args = ["--set", "refit.rounds=2", "--set", "refit.episodes=20", "--set", "refit.horizon=2",
+            "--set", "refit.holdout_episodes=10", "--set", "refit.workers=1"]
+    assert main(["refit", str(tmp_path / "plain"), str(tmp_path / "out"), *args]) == 0
+    assert "safety heads added to follower, leader" in capsys.readouterr().out
+    card = json.loads((tmp_path / "out" / "policy.json").read_text())
+    assert all(spec["safety"] and spec["safety_encoder"] for spec in card["networks"].values())
+    assert load(tmp_path / "out").learned_veto
+    assert main(["refit", str(tmp_path / "nothing"), str(tmp_path / "out2")]) == 2
     assert "checkpoint: no such file or folder" in capsys.readouterr().err
-    assert not (tmp_path / "out").exists()
+    assert not (tmp_path / "out2").exists()
 
 
 def test_the_command_takes_its_settings_from_a_run_folders_refit_section(tmp_path, capsys):

@@ -327,9 +327,9 @@ class RunConfig:
         if self.train.any_shortest_move != "none" and self.game.n_followers != 1:
             raise ConfigError(f"train.any_shortest_move: {self.train.any_shortest_move} needs game.n_followers: 1 "
                               f"(not {self.game.n_followers}); allowed: none")
-        if self.refit.rounds and not self.train.safety_horizon:
-            raise ConfigError(f"refit.rounds: {self.refit.rounds} refits safety heads, and train.safety_horizon: 0 "
-                              "trains none; allowed: 0, or a train.safety_horizon > 0")
+        if self.refit.rounds and self.game.n_followers != 1:
+            raise ConfigError(f"refit.rounds: {self.refit.rounds} needs game.n_followers: 1 "
+                              f"(not {self.game.n_followers}); allowed: 0")
         if self.train.safety_horizon and self.game.n_followers != 1:
             raise ConfigError(f"train.safety_horizon: {self.train.safety_horizon} needs game.n_followers: 1 "
                               f"(not {self.game.n_followers}); allowed: 0")

@@ -17,6 +17,7 @@ bit each, 756 bytes a state on the paper's settings.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -197,21 +198,47 @@ def fit(networks: dict[str, DuelingQNetwork], bank: StateBank, safe: np.ndarray,
 
 def check_refittable(policy, name: str | None = None) -> None:
     """A one-line ``ConfigError`` unless ``refit`` can work on ``policy`` (called ``name``, else by its source):
-    networks with safety heads (one follower), reading their observations alike."""
+    one follower, and networks that read their observations alike."""
     name = name or policy.source
-    if not policy.learned_veto:
-        raise ConfigError(f"refit: {name} has no safety heads (it trained with train.safety_horizon: 0); "
-                          "allowed: a policy trained with train.safety_horizon > 0")
+    if policy.game.n_followers != 1:
+        raise ConfigError(f"refit: {name} has {policy.game.n_followers} followers; allowed: one (the safety heads "
+                          "judge the joint moves of a leader and one follower)")
     keys = {policy.networks[m].prepare_key for m in policy.agent_modules}
     if len(keys) > 1:
         raise ConfigError(f"refit: {name}'s networks read their observations differently; "
                           "allowed: networks that prepare alike (as training builds them)")
 
 
+def add_safety_heads(policy) -> list[str]:
+    """Give each network of ``policy`` that has none a safety head on an encoder of its own, that encoder a copy
+    of the trained one the Q-values read, so that the head starts from features that already see the
+    obstacles; the head's own layers start fresh. Until they are fitted the team plays without its veto.
+    Returns the modules that got heads."""
+    added = []
+    for module, net in sorted(policy.networks.items()):
+        if net.safety is not None:
+            continue
+        spec = dataclasses.replace(net.spec, safety=True, safety_encoder=True)
+        grown = spec.build()
+        grown.load_state_dict(net.state_dict(), strict=False)  # every weight it had; the head's are new
+        grown.safety_encoder[0].load_state_dict(net.encoder.state_dict())
+        grown.eval()
+        grown.requires_grad_(False)
+        policy.networks[module], policy.specs[module] = grown, spec
+        added.append(module)
+    if added:
+        policy.learned_veto = False
+    return added
+
+
 def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -> dict:
-    """Refit ``policy``'s safety heads in place (``RefitSettings``), and set its ``veto_threshold``; the report
-    of every round."""
+    """Refit ``policy``'s safety heads in place (``RefitSettings``), first adding them where it has none
+    (``add_safety_heads``), and set its ``veto_threshold``; the report of every round."""
     check_refittable(policy)
+    added = add_safety_heads(policy)
+    if added:
+        say(f"safety heads added to {', '.join(added)} (their encoders copied from the Q-values'); the team plays "
+            "without its veto until they are first fitted")
     config = policy.game
     networks = {m: policy.networks[m] for m in sorted(set(policy.agent_modules))}
     workers = settings.workers or os.cpu_count() or 1
@@ -220,7 +247,8 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
 
     def minutes() -> str:
         return f"{(time.monotonic() - started) / 60:.1f} min"
-    report: dict = {"settings": {k: getattr(settings, k) for k in settings.__dataclass_fields__}, "rounds": []}
+    report: dict = {"settings": {k: getattr(settings, k) for k in settings.__dataclass_fields__}, "rounds": [],
+                    "heads_added": added}
     import multiprocessing
 
     context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
@@ -268,6 +296,7 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
             t1 = time.monotonic()
             optimizer, loss = fit(networks, bank, safe, updates, settings.lr, settings.batch_size, rng, optimizer,
                                   progress)
+            policy.learned_veto = True  # the next round plays behind the heads as they are now
             entry = {"round": round_ + 1, "states": gathered.states, "states_in_all": len(safe),
                      "play_success": float(np.mean(gathered.success)), "updates": updates, "loss": loss,
                      "seconds": {"play": played, "label": labelled, "fit": time.monotonic() - t1}}
