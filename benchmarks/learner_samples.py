@@ -32,6 +32,7 @@ from formation.rllib.rollout_actor import RolloutActor  # noqa: E402
 
 def filled_replay(run: RunConfig, records: int) -> FrameReplay:
     actor = RolloutActor(config=build_algorithm_config(run), worker_index=1)
+    # the frames the actor records, as the run's replay stores them (a screen's cells, where the networks read them)
     replay = FrameReplay(max(records, 1000), actor.rollout.frame_shape, actor.rollout.n_agents,
                          run.game.frame_stack, seed=0, prioritized=run.train.prioritized)
     actor.set_replay(SimpleNamespace(add=SimpleNamespace(remote=replay.add)))

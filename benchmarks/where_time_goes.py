@@ -72,6 +72,7 @@ def alone(run: RunConfig, env_steps: int, trained: dict) -> dict:
     actor = RolloutActor(config=config, worker_index=1)
     actor.set_state({COMPONENT_RL_MODULE: trained["weights"], "num_env_steps_sampled_lifetime": trained["env_steps"]})
     actor.clock.pop()
+    # the frames the actor records, as the run's replay stores them (a screen's cells, where the networks read them)
     replay = FrameReplay(run.train.replay_capacity, actor.rollout.frame_shape, actor.rollout.n_agents,
                          run.game.frame_stack, seed=0, prioritized=run.train.prioritized)
     inserts, clock = Stopwatch(), Stopwatch()

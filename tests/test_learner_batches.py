@@ -284,3 +284,54 @@ def test_one_finiteness_check_of_all_gradients_applies_them_as_rllib_does(finite
             assert torch.isfinite(value).all()
         moved = [k for k, v in weights["one check"][m].items() if not torch.equal(v, before.module[m].state_dict()[k])]
         assert any("q_network" in k for k in moved), m  # the update did change the weights
+
+
+def test_the_learner_updates_alike_on_a_batch_of_cells_and_on_the_screens_they_come_from():
+    """The replay keeps only the cells of the screens where the networks read them per cell: the learner's
+    update on such a batch (split per module, prepared once for both, forward, backward, step) must leave the
+    same weights and give the same priorities as on the same batch of whole screens. No Ray cluster."""
+    import torch
+
+    from formation.recipe.config import RunConfig
+    from formation.recipe.qnet import ScreenCells
+    from formation.recipe.replay import FrameReplay
+    from formation.recipe.rollout import GameRollout
+    from formation.recipe.team import answers_leader, module_of_agent, reads_cells, replay_frame_shape, spaces_of
+    from formation.rllib.algorithm import build_algorithm_config
+
+    run = RunConfig.load("configs/smoke.yaml", {"game.obs_type": "pixels", "train.safety_horizon": 4})
+    assert reads_cells(run) and run.train.prioritized
+    board, k = (run.game.height, run.game.width), run.game.frame_stack
+    # the same games into a replay of cells and one of whole screens: equal draws, equal ids
+    samples = {}
+    for cells in (True, False):
+        rollout, rng = GameRollout(run.game, 8, seed=1, screen_cells=cells), np.random.default_rng(1)
+        shape = replay_frame_shape(run) if cells else rollout.observer.frame_shape
+        replay = FrameReplay(1000, shape, 2, k, seed=0)
+        for _ in range(30):
+            chunk = rollout.step(rng.integers(0, 4, (8, 2)), safe=rng.integers(0, 1 << 16, 8))
+            replay.add(chunk)
+        samples[cells] = replay.sample(16, n_step=run.train.n_step, gamma=run.train.gamma)
+    np.testing.assert_array_equal(samples[True]["ids"], samples[False]["ids"])
+    assert samples[True]["obs"].shape == (16, *board, 3 * k) and samples[False]["obs"].shape == (16, 84, 84, 3 * k)
+    reader = ScreenCells((84, 84, 3 * k), board)
+    for key in ("obs", "next_obs"):
+        np.testing.assert_array_equal(samples[True][key], reader(torch.from_numpy(samples[False][key])).numpy())
+
+    config = build_algorithm_config(run)
+    agents = module_of_agent(run)
+    spaces = {m: spaces_of(run) for m in set(agents)}
+    weights, priorities = {}, {}
+    for cells in (True, False, None):  # None: the weights before the update
+        torch.manual_seed(0)
+        learner = config.build_learner(spaces=spaces)
+        learner.set_replays([], agents, [m for m in set(agents) if answers_leader(run, m)], safety=True)
+        if cells is not None:
+            priorities[cells] = learner.update_on(dict(samples[cells]))
+        weights[cells] = {m: {key: value.clone() for key, value in learner.module[m].state_dict().items()}
+                          for m in set(agents)}
+    np.testing.assert_array_equal(priorities[True], priorities[False])
+    for m in weights[True]:
+        for key, value in weights[True][m].items():
+            assert torch.equal(value, weights[False][m][key]), (m, key)
+        assert any(not torch.equal(value, weights[None][m][key]) for key, value in weights[True][m].items()), m

@@ -241,3 +241,45 @@ def test_one_spec_builds_the_network_the_rllib_module_and_the_card():
         assert NetworkSpec.from_dict({**card, "row_scan": 0}) == specs[module]
     with pytest.raises(ConfigError, match=r"^networks\.leader\.rows: unknown key; allowed: obs_shape, "):
         NetworkSpec.from_dict({**specs["leader"].to_dict(), "rows": 3}, "networks.leader")
+
+
+@pytest.mark.parametrize("setting", [1, 3])
+@pytest.mark.parametrize("safety_encoder", [False, True])
+def test_networks_give_the_same_outputs_on_the_cells_the_replay_keeps_as_on_whole_screens(setting, safety_encoder):
+    """The replay keeps only the cells of the screens; the learner's networks read those while acting reads
+    whole screens. Every output (Q-values of the leader's and of the answering follower's network, safety
+    logits, what the layers without weights prepare) must be the same floats from both."""
+    from formation.recipe.config import RunConfig
+    from formation.recipe.qnet import outputs_of
+    from formation.recipe.replay import FrameReplay
+    from formation.recipe.rollout import GameRollout
+    from formation.recipe.team import network_specs, reads_cells, replay_frame_shape
+
+    run = RunConfig.load(f"configs/setting{setting}.yaml",
+                         {"train.safety_horizon": 8, "train.safety_encoder": safety_encoder})
+    assert reads_cells(run)
+    torch.manual_seed(setting)
+    nets = {m: spec.build().eval() for m, spec in network_specs(run).items()}
+    assert set(nets) == {"leader", "follower"} and nets["follower"].spec.answers_leader
+    games, rng = 6, np.random.default_rng(setting)
+    rollout = GameRollout(run.game, games, seed=setting, screen_cells=True)
+    replay = FrameReplay(100, replay_frame_shape(run), 2, run.game.frame_stack)
+    for _ in range(4):  # the obstacles move: the forecast reads their motion
+        screens = torch.from_numpy(rollout.observations.copy())  # what the agents act on
+        ids = replay.added + np.arange(games)  # the step's records, one per game
+        replay.add(rollout.step(np.repeat(rng.integers(0, 4, (games, 1)), 2, axis=1)))
+    cells, ok = replay.stack(ids)  # the last step's stacks, as the learner's batches bring them
+    cells = torch.from_numpy(cells)
+    board = (run.game.height, run.game.width)
+    assert ok.all() and screens.shape == (games, 84, 84, 12) and cells.shape == (games, *board, 12)
+    with torch.no_grad():
+        for name, net in nets.items():
+            assert net.cells(cells) is cells and torch.equal(net.cells(screens), cells)  # cells pass as they are
+            x_screens, x_cells = net.prepare(screens), net.prepare(cells)
+            assert torch.equal(x_screens, x_cells), name
+            assert torch.equal(net(screens), net(cells)), name
+            logits = net.safety_logits(x_screens), net.safety_logits(x_cells)
+            assert logits[0].shape == (6, 16) and torch.equal(*logits), name
+        (q_screens, safe_screens), (q_cells, safe_cells) = outputs_of(nets, screens), outputs_of(nets, cells)
+    assert all(torch.equal(q_screens[m], q_cells[m]) for m in nets) and torch.equal(safe_screens, safe_cells)
+    assert len({tuple(row.tolist()) for row in q_screens["leader"]}) > 1  # the states are told apart

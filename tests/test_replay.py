@@ -1,17 +1,20 @@
 """The frame replay: stacks built at sample time equal what the env produced, each screen is
-stored once, n-step returns equal a hand computation, prioritized sampling follows priorities."""
+stored once (only its cells, where the networks read screens per cell), n-step returns equal a hand
+computation, prioritized sampling follows priorities."""
 
 import numpy as np
 import pytest
+import torch
 
 from formation.config import GameConfig
+from formation.recipe.qnet import ScreenCells
 from formation.recipe.replay import Chunk, FrameReplay, SumTree
 from formation.recipe.rollout import GameRollout, concatenate
 
 
-def play(config, batch, steps, capacity, seed=0, n_agents=2):
+def play(config, batch, steps, capacity, seed=0, n_agents=2, screen_cells=False):
     """Random play into a replay; returns (replay, {record id: the stack the agents saw})."""
-    rollout = GameRollout(config, batch, seed=seed)
+    rollout = GameRollout(config, batch, seed=seed, screen_cells=screen_cells)
     replay = FrameReplay(capacity, rollout.frame_shape, n_agents, config.frame_stack, seed=seed)
     seen = {}
     rng = np.random.default_rng(seed)
@@ -25,12 +28,22 @@ def play(config, batch, steps, capacity, seed=0, n_agents=2):
     return replay, seen, rollout
 
 
-@pytest.mark.parametrize("obs_type", ["pixels", "grid"])
-def test_sampled_stacks_equal_what_the_agents_saw(obs_type):
+def cells_of(screens: np.ndarray, config) -> np.ndarray:
+    """What the networks read of screens (or stacks of them), by their own layer."""
+    reader = ScreenCells(screens.shape[1:], (config.height, config.width))
+    return reader(torch.from_numpy(np.ascontiguousarray(screens))).numpy()
+
+
+@pytest.mark.parametrize("obs_type, screen_cells", [("pixels", False), ("grid", False), ("pixels", True)])
+def test_sampled_stacks_equal_what_the_agents_saw(obs_type, screen_cells):
+    """Where the replay stores cells, its stacks are the cells of the stacks the agents saw."""
     config = GameConfig.from_setting(1, obs_type=obs_type, frame_stack=4)
     # capacity far below what is played: the ring wraps many times
-    replay, seen, _ = play(config, batch=4, steps=400, capacity=500)
+    replay, seen, _ = play(config, batch=4, steps=400, capacity=500, screen_cells=screen_cells)
     assert replay.added > 3 * replay.capacity
+    if screen_cells:
+        assert replay.frames.shape[1:] == (25, 25, 3)
+        seen = {i: cells_of(obs[None], config)[0] for i, obs in seen.items()}
     batch = replay.sample(256, n_step=1, gamma=0.9)
     assert len(batch["ids"]) == 256
     for i, obs in zip(batch["ids"], batch["obs"]):
@@ -42,6 +55,33 @@ def test_sampled_stacks_equal_what_the_agents_saw(obs_type):
         successor = replay.next[int(i) % replay.capacity]
         if int(successor) in seen:  # a truncation's successor is a terminal record, not an agent step
             np.testing.assert_array_equal(obs, seen[int(successor)])
+
+
+@pytest.mark.parametrize("setting", [1, 3])
+def test_a_rollout_that_reads_cells_records_the_cells_of_the_screens_it_rendered(setting):
+    """Every record's frame is ``ScreenCells`` of the screen the renderer drew: a step's records of the screens
+    shown before the step, a truncated episode's terminal record of the screen after its last step (a rollout
+    of the same games that keeps whole screens recorded it). The agents still act on whole screens."""
+    config = GameConfig.from_setting(setting, obs_type="pixels", frame_stack=2, max_steps=6)
+    games = 5
+    cells, whole = (GameRollout(config, games, seed=3, screen_cells=on) for on in (True, False))
+    assert cells.frame_shape == (config.height, config.width, 3) and whole.frame_shape == (84, 84, 3)
+    rng = np.random.default_rng(0)
+    terminals = 0
+    for _ in range(20):
+        shown = cells.observer.renderer.screens.copy()  # what the renderer drew for the present state
+        np.testing.assert_array_equal(cells.observations, whole.observations)
+        assert cells.observations.shape == (games, 84, 84, 6)  # acting reads whole screens
+        actions = np.repeat(rng.integers(0, 4, (games, 1)), 2, axis=1)  # as one: the formation holds
+        chunk, reference = cells.step(actions), whole.step(actions)
+        assert chunk.frames.shape == (len(reference), config.height, config.width, 3)
+        np.testing.assert_array_equal(chunk.frames[:games], cells_of(shown, config))
+        np.testing.assert_array_equal(chunk.frames, cells_of(reference.frames, config))
+        np.testing.assert_array_equal(chunk.terminal, reference.terminal)
+        terminals += int(chunk.terminal.sum())
+    assert terminals > 0  # truncations happened: their terminal records were checked too
+    with pytest.raises(ValueError, match="screen_cells"):
+        GameRollout(GameConfig.from_setting(1, obs_type="grid"), 2, screen_cells=True)
 
 
 def test_episode_boundaries_repeat_the_first_frame():
@@ -67,6 +107,43 @@ def test_each_screen_is_stored_once():
     assert replay.frames.shape[1:] == (84, 84, 3)
     per_record = replay.nbytes / replay.capacity
     assert 84 * 84 * 3 <= per_record < 84 * 84 * 3 + 100
+
+
+@pytest.mark.parametrize("setting, obs_type, screen_cells, frame", [
+    (1, "pixels", True, (25, 25, 3)), (3, "pixels", True, (50, 50, 3)), (1, "pixels", False, (84, 84, 3)),
+    (1, "grid", True, (25, 25, 4))])
+def test_the_replay_stores_the_frames_the_rollouts_record(setting, obs_type, screen_cells, frame):
+    """The run's replay frame (``replay_frame_shape``, what training builds its replay with) is the frame its
+    rollouts record: a screen's cells where the networks read screens per cell, else a whole frame."""
+    from formation.recipe.config import RunConfig
+    from formation.recipe.team import reads_cells, replay_frame_shape
+
+    run = RunConfig.from_dict({"game": {"setting": setting, "obs_type": obs_type, "frame_stack": 4},
+                               "train": {"screen_cells": screen_cells, "obstacle_forecast": screen_cells}})
+    assert replay_frame_shape(run) == frame
+    rollout = GameRollout(run.game, 2, screen_cells=reads_cells(run))
+    assert rollout.frame_shape == frame
+    chunk = rollout.step(np.zeros((2, 2), np.int64))
+    assert chunk.frames.shape[1:] == frame
+    FrameReplay(10, replay_frame_shape(run), 2, 4).add(chunk)  # the replay takes them
+
+
+def test_a_replay_of_cells_takes_11x_less_memory_on_setting_1_pixels():
+    """Setting 1 from pixels (the networks read 25x25 cells): the replay's frames take 84*84/(25*25) = 11.3x
+    fewer bytes than whole screens; setting 3's 50x50 cells 2.8x fewer."""
+    from formation.recipe.config import RunConfig
+    from formation.recipe.team import replay_frame_shape
+
+    capacity = 1000
+    ratios = {}
+    for setting in (1, 3):
+        run = RunConfig.from_dict({"game": {"setting": setting, "obs_type": "pixels", "frame_stack": 4}})
+        cells = FrameReplay(capacity, replay_frame_shape(run), 2, 4)
+        screens = FrameReplay(capacity, (84, 84, 3), 2, 4)  # what it stored before
+        ratios[setting] = screens.frames.nbytes / cells.frames.nbytes
+        assert cells.frames.nbytes == capacity * run.game.height * run.game.width * 3
+    assert ratios[1] == 84 * 84 / (25 * 25) and ratios[1] > 11
+    assert ratios[3] == 84 * 84 / (50 * 50) and ratios[3] > 2.8
 
 
 def hand_chunk(rewards, terminated, truncated, stream=0, first_flags=None):

@@ -216,3 +216,48 @@ def test_every_modules_forward_passes_return_env_actions():
         assert greedy.min() >= 0 and greedy.max() <= 3 and exploring.min() >= 0 and exploring.max() <= 3
         # the follower's: the own move of its best (leader's move, own move) pair
         assert torch.equal(greedy, q.argmax(-1) % 4)
+
+
+# --------------------------------------------------------------------------- the replay keeps the cells
+def test_a_rollout_actor_acts_on_whole_screens_and_pushes_only_their_cells(rollout_actor, monkeypatch):
+    """Where the networks read screens per cell, a rollout actor's records (its pushes to the replay) hold the
+    cells of the screens its renderer drew, in the replay's frame shape, while its modules act on whole
+    screens (their observation space). No Ray cluster: the replay handle is a stand-in."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from formation.recipe.qnet import ScreenCells
+    from formation.recipe.team import replay_frame_shape
+
+    actor = rollout_actor({"game.obs_type": "pixels", "train.steps_per_sample": 3})
+    run, rollout = actor.run, actor.rollout
+    board = (run.game.height, run.game.width)
+    assert replay_frame_shape(run) == rollout.frame_shape == (*board, 3)
+    pushed, shown, acted_on = [], [], []
+    actor.set_replay(SimpleNamespace(add=SimpleNamespace(remote=pushed.append)))
+    step, act = rollout.step, actor._actions
+
+    def watched_step(*args, **kwargs):
+        shown.append(rollout.observer.renderer.screens.copy())  # the screens of the state the step leaves
+        return step(*args, **kwargs)
+
+    def watched_actions(observations):
+        acted_on.append(observations.shape)
+        return act(observations)
+
+    monkeypatch.setattr(rollout, "step", watched_step)
+    monkeypatch.setattr(actor, "_actions", watched_actions)
+    actor.sample()
+    screen = actor.module["leader"].observation_space.shape
+    assert screen == (84, 84, 3 * run.game.frame_stack) and acted_on == [(len(shown[0]), *screen)] * 3
+    chunk, = pushed
+    assert chunk.frames.shape[1:] == (*board, 3)
+    reader = ScreenCells((84, 84, 3), board)
+    # each step's first records, one per game, are the frames shown before it (terminal records follow them)
+    starts = np.flatnonzero(~chunk.terminal)
+    games = rollout.batch_size
+    assert len(starts) == 3 * games
+    for i, screens in enumerate(shown):
+        np.testing.assert_array_equal(chunk.frames[starts[i * games:(i + 1) * games]],
+                                      reader(torch.from_numpy(screens)).numpy())

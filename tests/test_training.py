@@ -226,3 +226,32 @@ def test_the_stock_rllib_path_trains_both_policies_on_the_papers_reward(cluster)
 def test_the_stock_path_refuses_our_recipe_in_one_line():
     with pytest.raises(ConfigError, match=r"^train\.path: stock runs RLlib's DQN on the paper's reward alone"):
         RunConfig.load(SMOKE, {"train.path": "stock"})
+
+
+def test_a_run_from_pixels_keeps_only_the_cells_in_its_replay_and_learns_from_them(cluster):
+    """Where the networks read screens per cell, the replay actor holds only the cells (its bytes per record are
+    those of a 9x9x3 frame, not an 84x84x3 screen), its batches are stacks of cells, and the learner updates on
+    them; the rollout actors and the greedy evaluation still act on whole screens."""
+    import torch
+
+    from formation.recipe.team import replay_frame_shape
+    from formation.rllib.algorithm import build_algorithm_config
+
+    run = RunConfig.load(SMOKE, {"game.obs_type": "pixels", "resources.num_rollout_actors": 1,
+                                 "resources.cpus_per_rollout_actor": 1.0, "train.learning_starts": 200})
+    assert replay_frame_shape(run) == (9, 9, 3)
+    algo = build_algorithm_config(run).build_algo()
+    try:
+        before = {m: [p.detach().clone() for p in module.parameters()] for m, module in algo.local_modules().items()}
+        train_until(algo, 800)
+        assert algo.counters["updates"] > 0
+        stats, = algo.replay_stats()
+        assert 9 * 9 * 3 <= stats["replay_bytes_per_record"] < 9 * 9 * 3 + 100, stats
+        sample = ray.get(algo.replays[0].sample.remote(8, 1, 0.97))
+        assert sample["obs"].shape == sample["next_obs"].shape == (8, 9, 9, 3 * run.game.frame_stack)
+        after = algo.local_modules()
+        for m, params in before.items():
+            assert any(not torch.equal(p, q) for p, q in zip(params, after[m].parameters())), m
+        assert algo.evaluate_greedy(episodes=4)["episodes"] == 4  # acting on whole screens
+    finally:
+        algo.stop()

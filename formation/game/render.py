@@ -28,6 +28,13 @@ def cell_pixel_bounds(n_cells: int, screen: int = 84) -> np.ndarray:
     return np.stack([edges[:-1], edges[1:]], axis=1)
 
 
+def cell_pixels(n_cells: int, screen: int = 84) -> np.ndarray:
+    """The pixel read for each cell along one axis, its first (``cell_pixel_bounds``): the renderer paints
+    a whole cell in one colour, so that pixel holds all the cell shows. The networks' ``ScreenCells`` and
+    the rollouts that store cells instead of screens (``GameRollout``) read the same pixels through this."""
+    return cell_pixel_bounds(n_cells, screen)[:, 0]
+
+
 class _EntityCells:
     """Flat cell index of every entity of every game, in draw order: destination, obstacles,
     followers, leader."""

@@ -122,8 +122,8 @@ class TrainSettings:
     # side (formation.recipe.qnet.LeaderWindow); null: the whole screen, as the paper's networks
     leader_window: tuple[int, int, int] | None = (12, 3, 10)
     # pixels only: the Q-networks read one pixel per cell of the board from each screen (the renderer paints a
-    # whole cell in one colour, so nothing is lost; formation.recipe.qnet.ScreenCells), then every cell;
-    # false: the screen in 4x4-pixel patches
+    # whole cell in one colour, so nothing is lost; formation.recipe.qnet.ScreenCells), then every cell, and the
+    # replay stores only those cells; false: the screen in 4x4-pixel patches
     screen_cells: bool = True
     # the Q-networks also read a forecast of the obstacles: for every cell, whether an agent arriving there in
     # lockstep with the leader (or one to three steps later) would collide, from the obstacles' motion in the

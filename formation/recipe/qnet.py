@@ -12,7 +12,9 @@ one place holds in every other (docs/lab/TRAINING.md measures what that is worth
 With a ``ScreenCells`` reader the network first takes one pixel per cell of the board from each
 screen (the renderer paints a whole cell in one colour, so nothing on the screen is lost) and
 reads the result as a grid, at one entry per cell: on settings 3-4 a cell is 1.68 pixels wide,
-and 4x4 patches would mix two or three cells.
+and 4x4 patches would mix two or three cells. Such a network also reads cells taken already (the
+replay stores only those, ``formation.recipe.rollout.GameRollout``) and gives the same outputs as on
+the whole screens.
 
 A network that *answers the leader* (a follower's, ``train.follower_answers_leader``) outputs one
 Q-value per pair (leader's move, own move), 16 in all, row by row: the follower picks its move in
@@ -30,7 +32,7 @@ import torch
 from torch import nn
 
 from formation.config import ConfigError
-from formation.game.render import cell_pixel_bounds
+from formation.game.render import cell_pixels
 from formation.recipe.config import drop_removed
 
 N_ACTIONS = 4
@@ -121,7 +123,12 @@ class LeaderWindow(nn.Module):
 
 class ScreenCells(nn.Module):
     """``(N, S, S, C)`` screens -> ``(N, height, width, C)``: the top-left pixel of every cell of a
-    ``height`` x ``width`` board, where the screen's cells start (``cell_pixel_bounds``, spec 'Screen')."""
+    ``height`` x ``width`` board, where the screen's cells start (``cell_pixels``, spec 'Screen').
+
+    Cells taken already, ``(N, height, width, C)``, pass unchanged: the replay stores only the cells, so
+    the learner's batches hold them, while acting reads whole screens. The two shapes cannot be confused:
+    a screen is 84x84, a board at most 50x50 (a board as large as its screen would have one pixel per
+    cell, and reading all of them leaves the screen as it is)."""
 
     def __init__(self, obs_shape: tuple[int, int, int], board: tuple[int, int]):
         super().__init__()
@@ -130,10 +137,12 @@ class ScreenCells(nn.Module):
         if height > h or width > w:
             raise ValueError(f"a {height}x{width} board has cells under one pixel on a {h}x{w} screen")
         self.out_shape = (height, width, c)
-        self.register_buffer("rows", torch.as_tensor(cell_pixel_bounds(height, h)[:, 0]), persistent=False)
-        self.register_buffer("cols", torch.as_tensor(cell_pixel_bounds(width, w)[:, 0]), persistent=False)
+        self.register_buffer("rows", torch.as_tensor(cell_pixels(height, h)), persistent=False)
+        self.register_buffer("cols", torch.as_tensor(cell_pixels(width, w)), persistent=False)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        if obs.shape[1:] == self.out_shape:  # cells taken already (the replay's)
+            return obs
         return obs.index_select(1, self.rows).index_select(2, self.cols)
 
 
@@ -221,13 +230,14 @@ class NetworkSpec:
     (rows above, rows below, columns either side of the leader, in entries of the observation): look through
     a ``LeaderWindow`` first; None: the whole observation as it is. ``frame_channels``: channels of one frame
     of the stack (None: 3 for screens, 4 for grids). ``cells`` (board height, width), screens only: read one
-    pixel per cell first (``ScreenCells``); ``window`` is then in cells, and the encoder's first layer reads
-    every cell. ``forecast``: add the planes of an ``ObstacleForecast`` to what the encoder reads (grids, or
-    screens read per cell, of two frames or more). ``answers_leader``: 16 Q-values, one per (leader's move,
-    own move), row by row, instead of 4. ``safety``: a second head beside the dueling one, 16 logits of
-    whether each joint move (leader's move, follower's move, row by row) is safe (``safety_logits``,
-    ``train.safety_horizon``). ``safety_encoder``: that head reads an encoder of its own, a copy of the layers
-    the Q-values read, instead of their features (``train.safety_encoder``)."""
+    pixel per cell first (``ScreenCells``; the cells of ``obs_shape``'s screens, taken already, are read as
+    they are); ``window`` is then in cells, and the encoder's first layer reads every cell. ``forecast``: add
+    the planes of an ``ObstacleForecast`` to what the encoder reads (grids, or screens read per cell, of two
+    frames or more). ``answers_leader``: 16 Q-values, one per (leader's move, own move), row by row, instead
+    of 4. ``safety``: a second head beside the dueling one, 16 logits of whether each joint move (leader's
+    move, follower's move, row by row) is safe (``safety_logits``, ``train.safety_horizon``).
+    ``safety_encoder``: that head reads an encoder of its own, a copy of the layers the Q-values read, instead
+    of their features (``train.safety_encoder``)."""
 
     obs_shape: tuple[int, int, int]
     high: float = 255.0
@@ -333,7 +343,8 @@ class DuelingQNetwork(nn.Module):
     def prepare(self, obs: torch.Tensor) -> torch.Tensor:
         """uint8 observations -> what the layers with weights read, ``(N, C, H, W)`` floats: the layers
         without weights (cells, forecast, window). Two networks of the same ``prepare_key`` prepare
-        alike, so a learner prepares a batch once for the online and target networks of every module."""
+        alike, so a learner prepares a batch once for the online and target networks of every module.
+        A network with ``cells`` takes whole screens or their cells (``ScreenCells``), with the same result."""
         if self.cells is not None:
             obs = self.cells(obs)
         extra = self.forecast(obs) if self.forecast is not None else None

@@ -1,11 +1,13 @@
-"""Replay that stores each screen once and builds frame stacks and n-step returns at sample time.
+"""Replay that stores each frame once and builds frame stacks and n-step returns at sample time.
 
 Rollouts push *records*, one per game per step, in each game's own order. A record holds the
 frame the agents saw before acting, every agent's action and reward, and whether the step ended
 the episode. When an episode is truncated, the frame after its last step is pushed as a
 *terminal record* (no action; never sampled as a start) to bootstrap from; a terminated episode
 needs none. So an episode of L steps costs L or L + 1 frames, and the k-frame stacks of
-consecutive steps share their frames instead of copying them.
+consecutive steps share their frames instead of copying them. A frame is what the rollouts record:
+a grid, a screen, or where the networks read screens per cell only those cells
+(``formation.recipe.rollout.GameRollout``), so the stacks it samples are of that frame too.
 
 Each record gets a global id (insertion count); slot = id % capacity. A record keeps the ids of
 its predecessor and successor in the same episode; when the ring overwrites a record its slot's

@@ -21,6 +21,21 @@ def spaces_of(run: RunConfig) -> tuple[gym.spaces.Box, gym.spaces.Discrete]:
     return gym.spaces.Box(0, observer.high, observer.shape, np.uint8), gym.spaces.Discrete(4)
 
 
+def reads_cells(run: RunConfig) -> bool:
+    """Whether the networks read screens one pixel per cell (``train.screen_cells`` on pixels): then the
+    rollouts record, and the replay stores, only those cells (``GameRollout``'s ``screen_cells``)."""
+    return run.game.obs_type == "pixels" and run.train.screen_cells
+
+
+def replay_frame_shape(run: RunConfig) -> tuple[int, int, int]:
+    """The shape of one frame the replay stores, as ``GameRollout.frame_shape`` of the run's rollouts: a
+    screen's cells (``reads_cells``), else a frame of the observation (a screen or a grid)."""
+    obs_space, _ = spaces_of(run)
+    h, w, c = (int(v) for v in obs_space.shape)
+    c //= run.game.frame_stack
+    return (run.game.height, run.game.width, c) if reads_cells(run) else (h, w, c)
+
+
 def module_of_agent(run: RunConfig) -> list[str]:
     """The module (policy) id of each agent, leader first."""
     if run.train.followers_share_policy:
@@ -41,7 +56,7 @@ def network_specs(run: RunConfig) -> dict[str, NetworkSpec]:
     t, game = run.train, run.game
     obs_space, _ = spaces_of(run)
     shape = tuple(int(v) for v in obs_space.shape)
-    per_cell = game.obs_type == "pixels" and t.screen_cells
+    per_cell = reads_cells(run)
     window, frame_channels = t.leader_window, None
     if window is not None:
         frame_channels = len(GRID_PLANES) if game.obs_type == "grid" else 3

@@ -50,7 +50,7 @@ from formation.evaluate import play_greedy
 from formation.recipe.config import RunConfig, TrainSettings
 from formation.recipe.rollout import STARTS
 from formation.recipe.stopwatch import Stopwatch, add_seconds
-from formation.recipe.team import answers_leader, module_of_agent, network_specs, spaces_of
+from formation.recipe.team import answers_leader, module_of_agent, network_specs, replay_frame_shape, spaces_of
 from formation.rllib.learner import FormationLearner
 from formation.rllib.module import DuelingQModule
 from formation.rllib.replay_actor import ReplayActor
@@ -447,7 +447,7 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
     def setup(self, config: FormationDQNConfig) -> None:
         super().setup(config)
         run = self.run = config.run
-        frame_shape = _frame_shape(run)
+        frame_shape = replay_frame_shape(run)  # the cells of a screen, where the networks read screens per cell
         self.replays = [ReplayActor.remote(max(1, run.train.replay_capacity // run.resources.num_replay_shards),
                                            frame_shape, 1 + run.game.n_followers, run.game.frame_stack,
                                            seed=run.train.seed + i, prioritized=run.train.prioritized)
@@ -663,12 +663,6 @@ class StockFormationDQN(GreedyEvaluationMixin, DQN):
             self._evaluate_now()
             c["next_eval_at"] += self.run.eval.every_env_steps
         self._log_evaluation()
-
-
-def _frame_shape(run: RunConfig) -> tuple[int, int, int]:
-    obs_space, _ = spaces_of(run)
-    h, w, c = obs_space.shape
-    return (h, w, c // run.game.frame_stack)
 
 
 # the greedy evaluation's rates (formation.evaluate.play_greedy's summary) under result["evaluation"]

@@ -4,7 +4,9 @@ It runs inside RLlib's LearnerGroup (a Ray actor, on a GPU when the config asks)
 replay actor -> learner without passing the driver. The next batch is requested before the
 current one is used (prefetch), so the learner rarely waits on the replay. On a CPU the modules
 (leader, follower) update in parallel threads, one core each, after the layers without weights have
-read each batch's screens once for both.
+read each batch's observations once for both. Where the networks read screens per cell, a batch's
+observations are those cells already (the replay stores only them), which the networks take as they
+are (``formation.recipe.qnet.ScreenCells``); the modules' observation space stays the screen they act on.
 """
 
 from __future__ import annotations
@@ -77,7 +79,7 @@ class FormationLearner(DQNTorchLearner):
     def _prepare_once(self, batch: dict) -> None:
         """Run the layers without weights (``DuelingQNetwork.prepare``) once for each distinct tensor of
         observations of the batch, not once per module and network: the leader's and the follower's
-        modules read the same screens. Each result goes into every module batch that holds that tensor,
+        modules read the same observations. Each result goes into every module batch that holds that tensor,
         as ``PREPARED_OBS`` / ``PREPARED_NEXT_OBS``, which ``DuelingQModule`` then reads."""
         groups: dict[tuple, tuple[Any, torch.Tensor, list]] = {}
         for module_id, columns in batch.items():

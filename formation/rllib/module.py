@@ -3,7 +3,9 @@
 It implements RLlib's ``QNetAPI`` and ``TargetNetworkAPI``, so RLlib's DQN learner (the stock
 path) and ours both train it, and ``InferenceOnlyAPI``, so rollout actors get weights without
 the target network. ``model_config``: ``network``, the network's ``NetworkSpec.to_dict()``
-(``formation.recipe.team.network_specs``), and ``epsilon``.
+(``formation.recipe.team.network_specs``), and ``epsilon``. Its observation space is what it acts on; a
+network that reads screens per cell also takes their cells (the formation path's replay batches hold only
+those), so the learner's batches may differ from that space in height and width.
 Every module acts in the env's actions, 0..3. A module that answers the leader has 16 Q-values, one per (leader's
 move, own move) as ``4 * leader + own``; alone, without the leader's move, its ``forward_inference`` and
 ``forward_exploration`` return the own move of its best pair. The formation path's rollout actors and evaluation read

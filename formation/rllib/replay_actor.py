@@ -1,5 +1,9 @@
 """The shared replay as a Ray actor: rollout actors push records, the learner pulls batches.
 
+Its frames have the shape of the rollouts' records (``formation.recipe.team.replay_frame_shape``): the
+cells of each screen where the networks read screens per cell, so pushes, memory and batches hold no
+pixel the networks do not read.
+
 If its process dies, Ray starts it again (``max_restarts=-1``) with the same arguments and an empty
 replay, and retries the calls that were in flight (``max_task_retries=-1``), so no caller sees the
 failure. Every start has a new ``incarnation``: a batch carries it, the learner notices the change,

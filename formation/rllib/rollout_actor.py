@@ -2,7 +2,9 @@
 
 Each ``sample()`` plays ``steps_per_sample`` steps of all its games with the weights it was last
 sent (epsilon-greedy, per agent or per team: ``train.exploration``), pushes the records straight to
-its replay shard and returns only counts and finished-episode statistics, never transitions.
+its replay shard and returns only counts and finished-episode statistics, never transitions. It acts
+on whole screens; where the networks read them per cell, the records it pushes hold only the cells
+(``formation.recipe.rollout.GameRollout``), the replay's frames (``replay_frame_shape``).
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from formation.recipe.rollout import GameRollout, concatenate
 from formation.recipe.shaping import Potential
 from formation.recipe.stopwatch import Stopwatch
 from formation.recipe.teacher import Teacher, safety_labels
-from formation.recipe.team import module_of_agent, spaces_of
+from formation.recipe.team import module_of_agent, reads_cells, spaces_of
 
 
 def epsilon_at(env_steps: int, train: TrainSettings) -> float:
@@ -74,7 +76,7 @@ class RolloutActor(EnvRunner, Checkpointable):
         potential = Potential(t.potential, run.game) if t.shaping > 0 and t.potential != "none" else None
         self.rollout = GameRollout(run.game, games, seed=t.seed * 10_007 + index, stream_offset=index * games,
                                    potential=potential, shaping=t.shaping, gamma=t.gamma,
-                                   exploring_starts=t.exploring_starts)
+                                   exploring_starts=t.exploring_starts, screen_cells=reads_cells(run))
         self._rng = np.random.default_rng([t.seed, index])  # exploration
         self._demo_games = int(round(run.train.demonstrations * games))
         self._plans: dict[int, list] = {}
