@@ -3,10 +3,11 @@
 
     .venv/bin/python experiments/results_tables.py
 
-Each report is `formation evaluate <policy> --episodes 1000 --seed 2000000 --json docs/results/<name>.json`.
-The training hours of each are in docs/results/training_hours.json, as experiments/training_time.py
-measured them from the run folder's metrics.jsonl, and the hours of `formation refit` after it, as its
-export's card records them (``refit.seconds``). Prints both tables as Markdown.
+Each report is `formation evaluate <policy> --episodes 1000 --seed 2000000 --json docs/results/<name>.json`:
+`settingK_seedS.json` of the run folder of `formation train configs/settingK.yaml --set train.seed=S`,
+`settingK.json` of the shipped `policies/settingK`, and the grid and paper's-recipe rows. A report records how
+its team was trained (``trained``: env steps, wall seconds of training and refit, hardware); for the rows
+older than that, docs/results/training_hours.json has the hours. Prints the tables as Markdown.
 """
 
 from __future__ import annotations
@@ -31,6 +32,23 @@ def label(stem: str) -> str:
             "paper_recipe": f"setting {k}, the paper's recipe"}[kind]
 
 
+def one_command_row(stem: str, r: dict, shipped: dict | None) -> str:
+    """A row of the one-command table: a run of `formation train configs/settingK.yaml` and its seed."""
+    trained = r["trained"]
+    low, high = r["success_ci95"]
+    minutes = trained["wall_seconds"] / 60
+    refit = (trained["refit_seconds"] or 0.0) / 60
+    steps = "none" if r["steps_success_mean"] is None else \
+        f"{r['steps_success_mean']:.2f} / {r['planner']['planner_steps_on_successes_mean']:.2f}"
+    ships = shipped is not None and shipped["trained"] is not None and \
+        shipped["trained"]["env_steps"] == trained["env_steps"] and shipped["trained"]["seed"] == trained["seed"]
+    cells = [str(r["setting"]), str(trained["seed"]), f"{pct(r['success'])} ({pct(low)[:-1]}-{pct(high)})",
+             pct(r["leader_collision"]), pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]),
+             steps, f"{trained['env_steps']:,}", f"{minutes + refit:.1f} ({minutes:.1f} + {refit:.1f})",
+             "yes" if ships else ""]
+    return "| " + " | ".join(cells) + " |"
+
+
 def training(hours: float | dict | None) -> str:
     """A number: hours of `formation train`; {"hours": h, "refit_hours": r}: then r hours of `formation refit`."""
     if hours is None:
@@ -50,6 +68,10 @@ def test_row(stem: str, r: dict, hours: float | dict | None) -> str:
         steps = f"none / {p['planner_steps_mean']:.2f}"
     else:
         steps = f"{r['steps_success_mean']:.2f} / {p['planner_steps_on_successes_mean']:.2f}"
+    trained = r.get("trained")
+    if trained and trained.get("wall_seconds"):  # the report's own record, where it has one
+        hours = {"hours": trained["wall_seconds"] / 3600,
+                 **({"refit_hours": trained["refit_seconds"] / 3600} if trained["refit_seconds"] else {})}
     cells = [label(stem), f"{r['env_steps']:,}", training(hours), success,
              pct(r["leader_collision"]), pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]),
              steps]
@@ -77,7 +99,15 @@ def main() -> None:
     parser(__doc__).parse_args()
     hours = json.loads((RESULTS / "training_hours.json").read_text())
     reports = {path.stem: json.loads(path.read_text()) for path in RESULTS.glob("setting*.json")}
-    stems = sorted(reports, key=order)
+    runs = sorted(stem for stem in reports if "_seed" in stem)
+    if runs:
+        print("| setting | seed | success (95% CI) | leader collision | follower collision | formation break | "
+              "time-out | steps: ours / planner | env steps | minutes: training + refit | shipped |\n"
+              + "| --- " * 11 + "|")
+        for stem in runs:
+            print(one_command_row(stem, reports[stem], reports.get(stem.partition("_")[0])))
+        print()
+    stems = sorted((stem for stem in reports if stem not in runs), key=order)
     print("| policy | env steps | training | success (95% CI) | leader collision | follower collision | "
           "formation break | time-out | steps: ours / planner |\n" + "| --- " * 9 + "|")
     for stem in stems:
