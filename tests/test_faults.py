@@ -132,9 +132,11 @@ def test_a_killed_driver_leaves_a_checkpoint_that_resume_continues(tmp_path):
     result = json.loads((out / "result.json").read_text())
     assert result["env_steps"] >= 1500
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
-    # the resumed run starts from the checkpoint's counters, not from zero
-    first_resumed = rows[steps_logged]
-    assert first_resumed["env_steps"] > saved_steps
+    # the resumed run starts from the checkpoint's counters, not from zero (an iteration on a loaded machine may
+    # sample nothing, and its row repeats them: seen once with the full suite beside other work)
+    resumed_rows = rows[steps_logged:]
+    assert resumed_rows and all(r["env_steps"] >= saved_steps for r in resumed_rows)
+    assert resumed_rows[-1]["env_steps"] > saved_steps
 
 
 def test_a_save_cut_between_its_renames_is_recovered(tmp_path):
