@@ -45,9 +45,9 @@ from formation.shield import Shield, shielded_moves
 FORMAT_VERSION = 1
 CARD = "policy.json"
 RL_MODULES = Path("checkpoint") / "learner_group" / "learner" / "rl_module"
-CHECKPOINT_STATE = Path("checkpoint") / "algorithm_state.pkl"
+CHECKPOINT_STATE = Path("checkpoint") / "algorithm_state.pkl"  # the counters, among RLlib's own state
 # a run whose config has a refit phase keeps its final team here, as an export (``formation.train``)
-REFITTED = "refitted"  # the counters, among RLlib's own state
+REFITTED = "refitted"
 DEFAULT_EVAL = {"episodes": 200, "seed": 1_000_000}
 DEFAULT_VETO_THRESHOLD = 0.5  # what training's heads are fitted to: the better guess of safe or not
 TRAINING = "training.json"  # a run folder's training record (``formation.train.training_record``)
