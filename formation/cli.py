@@ -142,8 +142,8 @@ def cmd_refit(args: argparse.Namespace) -> int:
     """Refit a trained team's safety heads on fresh states of its own play; write the team as an export."""
     from formation.policy import CARD, export, load
     from formation.recipe.config import RunConfig, section_of
-    from formation.recipe.safety_refit import check_refittable, refit
-    from formation.train import code_commit, hardware, now
+    from formation.recipe.safety_refit import check_refittable
+    from formation.train import refit_recorded
 
     overrides = parse_overrides(args.set)
     for key in overrides:
@@ -163,11 +163,8 @@ def cmd_refit(args: argparse.Namespace) -> int:
     print(f"refitting the safety heads of {args.checkpoint}: {settings.rounds} round(s) of {settings.episodes:,} "
           f"games, labels over {settings.horizon} steps, planner workers: {settings.workers or 'one per core'}",
           flush=True)
-    earlier = policy.refit_report  # a refit of a refitted team keeps the earlier report on its card
-    started = now()
-    report = refit(policy, settings, say=lambda line: print(line, flush=True))
-    report.update(started=started, ended=now(), commit=code_commit(), hardware=hardware())  # as training's
-    policy.refit_report = {**report, "earlier": earlier} if earlier else report
+    # a refit of a refitted team keeps the earlier report on its card
+    report = refit_recorded(policy, settings, say=lambda line: print(line, flush=True))
     with writing_folder(out) as folder:  # the export appears whole or not at all
         export(policy, folder, half=args.half)
     print(f"refitted in {report['seconds'] / 60:.1f} min; wrote {out} ({CARD})")

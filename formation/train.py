@@ -284,19 +284,15 @@ def refit_phase(out_dir: Path, run: RunConfig, say: Callable[[str], None]) -> di
     already there is replaced only once the new one is whole. Returns the evaluation's summary."""
     from formation.evaluate import play_greedy
     from formation.policy import REFITTED, export, load
-    from formation.recipe.safety_refit import refit
     from formation.storage import writing_folder
 
     policy = load(checkpoint_path(out_dir))
     say(f"refit: {run.refit.rounds} round(s) of {run.refit.episodes:,} games, labels over {run.refit.horizon} steps")
-    started = now()
-    report = refit(policy, run.refit, say=say)
+    report = refit_recorded(policy, run.refit, say)
     clock = time.monotonic()
     summary = play_greedy(policy.game, policy.act_batch, run.eval.episodes, run.eval.seed)["summary"]
-    report.update(started=started, ended=now(), commit=code_commit(), hardware=hardware(),
-                  evaluation={"seed": run.eval.seed, "greedy": summary})
+    report.update(evaluation={"seed": run.eval.seed, "greedy": summary})
     report["seconds"] += time.monotonic() - clock
-    policy.refit_report = report
     final, fresh = out_dir / REFITTED, out_dir / f"{REFITTED}.new"
     shutil.rmtree(fresh, ignore_errors=True)  # what an interrupted refit left
     with writing_folder(fresh) as folder:
@@ -307,6 +303,19 @@ def refit_phase(out_dir: Path, run: RunConfig, say: Callable[[str], None]) -> di
     say(f"refitted in {report['seconds'] / 60:.1f} min: greedy success {summary['success']:.1%} on "
         f"{summary['episodes']} held-out scenarios; the team: {final}")
     return summary
+
+
+def refit_recorded(policy, settings, say: Callable[[str], None]) -> dict:
+    """``formation.recipe.safety_refit.refit`` of ``policy``, its report (returned) kept on the policy's card
+    with the refit's start, end, commit and hardware, as training's record; an earlier refit's report stays
+    inside it (``earlier``)."""
+    from formation.recipe.safety_refit import refit
+
+    earlier, started = policy.refit_report, now()
+    report = refit(policy, settings, say=say)
+    report.update(started=started, ended=now(), commit=code_commit(), hardware=hardware())
+    policy.refit_report = {**report, "earlier": earlier} if earlier else report
+    return policy.refit_report
 
 
 # ---------------------------------------------------------------------- the training record
