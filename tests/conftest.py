@@ -15,6 +15,11 @@ from dataclasses import dataclass
 
 import pytest
 
+# One torch thread per process: the suite runs two xdist workers and the Ray actors of their runs on two cores,
+# and torch's default of a thread per core oversubscribes them (a refit test took 58 s with it, 11 s with one,
+# beside a training run). Set before torch loads; Ray's workers and the CLI subprocesses inherit it.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
 # Action indices (spec 'Actions').
 F, FL, FR, S = 0, 1, 2, 3
 SPEC_MOVES = {F: (-1, 0), FL: (-1, -1), FR: (-1, 1), S: (0, 0)}

@@ -14,7 +14,7 @@ import yaml
 
 from formation.cli import main
 from formation.policy import PolicyError, load, training_line
-from formation.train import TRAINING, read_training_record, training_record
+from formation.train import TRAINING, training_record
 
 REPO = Path(__file__).resolve().parent.parent
 COMMIT = re.compile(r"[0-9a-f]{40}(-dirty)?|unknown")
@@ -97,21 +97,6 @@ def test_a_result_older_than_the_checkpoint_is_not_its_report(smoke_run, tmp_pat
     shutil.copytree(smoke_run, run)
     (run / "result.json").write_text(json.dumps({"env_steps": 5, "seed": 1, "greedy": {"episodes": 1}}))
     assert load(run).training["evaluation"] is None
-
-
-def test_resume_adds_a_session_and_its_wall_time(cluster, smoke_run, tmp_path):
-    from formation.train import train
-
-    run = tmp_path / "run"
-    shutil.copytree(smoke_run, run)
-    before = read_training_record(run)
-    train(None, str(run), resume=True, quiet=True)  # at its budget already: the final evaluation alone
-    after = read_training_record(run)
-    assert after["sessions"][0] == before["sessions"][0] and len(after["sessions"]) == 2
-    assert after["wall_seconds"] == pytest.approx(before["wall_seconds"] + after["sessions"][1]["seconds"])
-    assert after["sessions"][1]["seconds"] > 0 and after["started"] == before["started"]
-    assert after["sessions"][1]["env_steps"] == [before["env_steps"]] * 2 == [after["env_steps"]] * 2
-    assert load(run).training["wall_seconds"] == after["wall_seconds"]
 
 
 def test_the_record_sums_its_sessions_and_keeps_the_latest_hardware_and_commit():

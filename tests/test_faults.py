@@ -1,5 +1,5 @@
 """Failures during `formation train` (docs/FAULTS.md): a rollout actor, the replay actor or the
-learner whose process dies mid-run, and a driver killed outright.
+learner whose process dies mid-run, a driver killed outright, and SIGTERM.
 
 The actors are killed as a crash kills them: SIGKILL to their process, found by actor id."""
 
@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 
 import pytest
 
@@ -37,51 +38,42 @@ def last_row(out) -> dict:
     return json.loads((out / "metrics.jsonl").read_text().splitlines()[-1])
 
 
-def test_a_killed_rollout_actor_is_restarted_and_the_run_finishes(cluster, tmp_path):
+def test_killed_rollout_and_replay_actors_are_restarted_the_replay_refilled_and_the_run_finishes(cluster, tmp_path):
+    """One run, two crashes: a rollout actor at 800 env steps, then the replay actor once learning is under way."""
     out = tmp_path / "run"
     seen: dict = {}
 
-    def kill_one_actor(algo, row):
-        if "killed" not in seen and row["env_steps"] >= 800:
+    def kill_an_actor_then_the_replay(algo, row):
+        if "actor_killed" not in seen and row["env_steps"] >= 800:
             index, (pid, actor_id) = sorted(rollout_actors(algo).items())[0]
-            seen["killed"] = (index, pid, actor_id)
+            seen["actor_killed"] = (index, pid, actor_id)
             os.kill(pid, signal.SIGKILL)
+        elif "actor_killed" in seen and "replay_killed" not in seen and row["learner_updates"] > 0 \
+                and row["env_steps"] >= 1600:
+            seen["replay_killed"] = replay_process(algo)
+            seen["updates_at_kill"] = algo.counters["updates"]
+            os.kill(seen["replay_killed"][0], signal.SIGKILL)
         seen["actors"] = rollout_actors(algo)  # the last iteration's actors
         seen["healthy"] = algo.env_runner_group.healthy_worker_ids()
-
-    summary = train(SMOKE, str(out), overrides={"train.total_env_steps": 3000}, quiet=True,
-                    on_iteration=kill_one_actor)
-    index, pid, actor_id = seen["killed"]
-    row = last_row(out)
-    assert row["env_steps"] >= 3000 and summary["episodes"] == 50
-    assert row["faults/rollout_actor_restarts"] >= 1
-    assert sorted(seen["healthy"]) == [1, 2]  # both actors sample again
-    new_pid, new_actor_id = seen["actors"][index]
-    assert new_actor_id == actor_id and new_pid != pid  # Ray restarted the same actor in a new process
-
-
-def test_a_killed_replay_actor_is_restarted_refilled_and_the_run_finishes(cluster, tmp_path):
-    out = tmp_path / "run"
-    seen: dict = {}
-
-    def kill_the_replay(algo, row):
-        if "killed" not in seen and row["learner_updates"] > 0 and row["env_steps"] >= 1200:
-            seen["killed"] = replay_process(algo)
-            seen["updates_at_kill"] = algo.counters["updates"]
-            os.kill(seen["killed"][0], signal.SIGKILL)
         seen["replay"] = algo.replay_stats()[0]
         seen["process"] = replay_process(algo)
 
-    train(SMOKE, str(out), overrides={"train.total_env_steps": 3500, "train.prioritized": True}, quiet=True,
-          on_iteration=kill_the_replay)
+    summary = train(SMOKE, str(out), overrides={"train.total_env_steps": 3500, "train.prioritized": True},
+                    quiet=True, on_iteration=kill_an_actor_then_the_replay)
     row = last_row(out)
-    assert row["env_steps"] >= 3500
+    assert row["env_steps"] >= 3500 and summary["episodes"] == 50
+    # the rollout actor: Ray restarted the same actor in a new process, and both actors sample again
+    index, pid, actor_id = seen["actor_killed"]
+    assert row["faults/rollout_actor_restarts"] >= 1
+    assert sorted(seen["healthy"]) == [1, 2]
+    new_pid, new_actor_id = seen["actors"][index]
+    assert new_actor_id == actor_id and new_pid != pid
+    # the replay: restarted; learning paused while it refilled (what the ratio owed then was skipped) ...
     assert row["faults/replay_restarts"] == 1
-    # learning paused while the new replay refilled: what the ratio owed then was skipped ...
     assert row["faults/updates_skipped"] > 0
     # ... and went on after it
     assert row["learner_updates"] > seen["updates_at_kill"] + 50
-    assert seen["process"][1] == seen["killed"][1] and seen["process"][0] != seen["killed"][0]
+    assert seen["process"][1] == seen["replay_killed"][1] and seen["process"][0] != seen["replay_killed"][0]
     assert seen["replay"]["replay_env_steps"] < row["env_steps"]  # the new replay holds only what came after
     assert seen["replay"]["replay_records"] >= 500  # refilled to learning_starts at least
 
@@ -107,36 +99,57 @@ def test_a_killed_learner_stops_the_run_in_one_line_and_keeps_the_last_checkpoin
     assert (out / "checkpoint" / "algorithm_state.pkl").stat().st_mtime_ns == seen["saved"]
 
 
-def test_a_killed_driver_leaves_a_checkpoint_that_resume_continues(tmp_path):
+def rows_of(out) -> list[dict]:
+    return [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+
+
+def wait_for(proc: subprocess.Popen, ready: Callable[[], bool], what: str) -> None:
+    deadline = time.monotonic() + 240
+    while not ready():
+        assert proc.poll() is None and time.monotonic() < deadline, what
+        time.sleep(0.5)
+
+
+def test_a_killed_driver_leaves_a_checkpoint_that_resume_continues_and_sigterm_saves_one(tmp_path):
+    """A driver killed outright (SIGKILL to it and the local Ray it started: no chance to save) leaves its last
+    periodic checkpoint; `--resume` goes on from its counters; SIGTERM then stops the resumed run as Ctrl-C does:
+    a checkpoint saved, exit status 130."""
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "formation.cli", "train", SMOKE, "--out", str(out),
            "--set", "train.total_env_steps=1000000", "--set", "checkpoint.every_iterations=1"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     try:
-        deadline = time.monotonic() + 240
-        while not (out / "checkpoint" / "algorithm_state.pkl").is_file():
-            assert proc.poll() is None and time.monotonic() < deadline, "training did not start"
-            time.sleep(0.5)
+        wait_for(proc, (out / "checkpoint" / "algorithm_state.pkl").is_file, "training did not start")
         time.sleep(3)
     finally:
-        os.killpg(proc.pid, signal.SIGKILL)  # the driver and the local Ray it started: no chance to save
+        os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(timeout=60)
-    steps_logged = len((out / "metrics.jsonl").read_text().splitlines())
+    steps_logged = len(rows_of(out))
     assert steps_logged > 0
     saved_steps = json.loads((out / "training.json").read_text())["env_steps"]  # written with each checkpoint
     assert saved_steps > 0
-    resumed = subprocess.run([sys.executable, "-m", "formation.cli", "train", "--out", str(out), "--resume",
-                              "--set", "train.total_env_steps=1500"], capture_output=True, text=True, timeout=300)
-    assert resumed.returncode == 0, resumed.stderr[-2000:]
-    result = json.loads((out / "result.json").read_text())
-    assert result["env_steps"] >= 1500
-    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
-    # the resumed run starts from the checkpoint's counters, not from zero (an iteration on a loaded machine may
+
+    resumed = subprocess.Popen([sys.executable, "-m", "formation.cli", "train", "--out", str(out), "--resume"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                               env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        wait_for(resumed, lambda: rows_of(out)[-1]["env_steps"] > saved_steps, "the resumed run did not train")
+        signalled = time.time()
+        resumed.send_signal(signal.SIGTERM)
+        _, err = resumed.communicate(timeout=120)
+    finally:
+        if resumed.poll() is None:
+            os.killpg(resumed.pid, signal.SIGKILL)
+            resumed.wait(timeout=60)
+    # the resumed run started from the checkpoint's counters, not from zero (an iteration on a loaded machine may
     # sample nothing, and its row repeats them: seen once with the full suite beside other work)
-    resumed_rows = rows[steps_logged:]
+    resumed_rows = rows_of(out)[steps_logged:]
     assert resumed_rows and all(r["env_steps"] >= saved_steps for r in resumed_rows)
-    assert resumed_rows[-1]["env_steps"] > saved_steps
+    assert resumed.returncode == 130
+    assert "stopped: checkpoint saved" in err and "Traceback" not in err
+    assert (out / "checkpoint" / "algorithm_state.pkl").stat().st_mtime >= signalled - 1
+    assert json.loads((out / "training.json").read_text())["env_steps"] > saved_steps
 
 
 def test_a_save_cut_between_its_renames_is_recovered(tmp_path):

@@ -179,29 +179,3 @@ def test_without_heads_nothing_is_vetoed_and_greedy_within_all_moves_is_plain_gr
     moves, q = policy.act_batch_and_q(obs)
     assert (moves == policy.act_batch(obs)).all() and (moves == policy.q_batch(obs).argmax(-1)).all()
     assert sorted(q) == sorted(by_module) and all(np.array_equal(q[m], by_module[m]) for m in q)
-
-
-def test_the_learner_fits_the_safety_head_through_ray(cluster, tmp_path):
-    from formation.train import train
-
-    out = tmp_path / "run"
-    train(SMOKE, str(out), overrides={"train.safety_horizon": 2, "train.total_env_steps": 2000,
-                                      "eval.every_env_steps": 2000}, quiet=True)
-    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
-    assert any("learner/follower/safety_error" in row for row in rows)
-    policy = load(out)
-    assert policy.learned_veto and all(net.safety is not None for net in policy.networks.values())
-    # on states of fresh games, the head's verdicts beat the best constant guess of each joint move
-    rollout = GameRollout(policy.game, 64, seed=99)
-    rng = np.random.default_rng(0)
-    wrong, truth = [], []
-    for _ in range(8):
-        safe = surviving_first_moves_many([rollout.game.scenario(i) for i in range(64)], config=policy.game,
-                                          horizon=2)
-        bits = ((safe[:, None] >> np.arange(16, dtype=np.uint64)) & np.uint64(1)).astype(bool)
-        wrong.append(policy.learned_safe_moves(rollout.observations).reshape(64, 16) != bits)
-        truth.append(bits)
-        rollout.step(rng.choice([0, 0, 1, 2, 3], size=(64, 2)))
-    truth = np.concatenate(truth)
-    constant = np.minimum(truth.mean(0), 1 - truth.mean(0)).mean()
-    assert np.concatenate(wrong).mean() < 0.9 * constant, (np.concatenate(wrong).mean(), constant)

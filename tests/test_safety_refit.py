@@ -89,25 +89,47 @@ def test_heads_added_to_a_team_without_them_start_from_its_encoders_and_leave_it
     assert add_safety_heads(team) == []  # a team with heads keeps them
 
 
-def test_training_ends_with_the_refit_phase_its_config_names(cluster, tmp_path):
+def test_training_fits_the_safety_heads_through_ray_and_ends_with_the_refit_phase_its_config_names(cluster, tmp_path):
+    """The settings' path in small: the learner fits safety heads on their own encoders beside the Q-values, then
+    the refit phase fits them again on fresh play; the Q-values stay as trained."""
     from formation.policy import REFITTED
+    from formation.recipe.rollout import GameRollout
     from formation.train import refit_phase, train
 
     out = tmp_path / "run"
     summary = train(SMOKE, str(out), quiet=True, overrides={
-        "train.total_env_steps": 1500, "refit.rounds": 1, "refit.episodes": 30, "refit.horizon": 2,
+        "train.safety_horizon": 2, "train.safety_encoder": True, "train.total_env_steps": 2000,
+        "eval.every_env_steps": 2000, "refit.rounds": 1, "refit.episodes": 30, "refit.horizon": 2,
         "refit.holdout_episodes": 10, "refit.workers": 1})
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert any("learner/follower/safety_error" in row for row in rows)
     team, trained = load(out), load(out / "checkpoint")  # the run's final team; the networks as trained
+    assert trained.learned_veto and all(net.safety is not None for net in trained.networks.values())
+    # on states of fresh games, the trained heads' verdicts beat the best constant guess of each joint move
+    rollout = GameRollout(trained.game, 64, seed=99)
+    rng = np.random.default_rng(0)
+    wrong, truth = [], []
+    for _ in range(8):
+        safe = surviving_first_moves_many([rollout.game.scenario(i) for i in range(64)], config=trained.game,
+                                          horizon=2)
+        bits = ((safe[:, None] >> np.arange(16, dtype=np.uint64)) & np.uint64(1)).astype(bool)
+        wrong.append(trained.learned_safe_moves(rollout.observations).reshape(64, 16) != bits)
+        truth.append(bits)
+        rollout.step(rng.choice([0, 0, 1, 2, 3], size=(64, 2)))
+    truth = np.concatenate(truth)
+    constant = np.minimum(truth.mean(0), 1 - truth.mean(0)).mean()
+    assert np.concatenate(wrong).mean() < 0.9 * constant, (np.concatenate(wrong).mean(), constant)
+
     report = team.refit_report
     assert report["evaluation"] == {"seed": 1_000_000, "greedy": summary}
     assert report["settings"]["episodes"] == 30 and report["seconds"] > 0 and report["hardware"]
-    assert report["heads_added"] == ["follower", "leader"] and team.learned_veto and not trained.learned_veto
+    assert report["heads_added"] == [] and team.learned_veto
     assert (team.veto_threshold, trained.refit_report) == (0.97, None)
     assert team.training["config"]["refit"]["rounds"] == 1 and team.training["wall_seconds"] > 0
-    for module, net in team.networks.items():  # heads added and fitted, the Q-values kept as trained
+    for module, net in team.networks.items():  # the heads fitted again, the Q-values kept as trained
         before, after = trained.networks[module].state_dict(), net.state_dict()
-        assert all(torch.equal(v, after[k]) for k, v in before.items())
-        assert not torch.equal(after["safety_encoder.0.0.weight"], after["encoder.0.weight"])
+        refitted = {k for k in after if not torch.equal(before[k], after[k])}
+        assert refitted and all(k.startswith(("safety.", "safety_encoder.")) for k in refitted), refitted
     # a refit again (a --resume after more training does one) replaces the team whole
     refit_phase(out, RunConfig.load_saved(out / "config.yaml", {"refit.episodes": 20}), say=lambda line: None)
     assert load(out).refit_report["settings"]["episodes"] == 20

@@ -135,7 +135,7 @@ def test_exploring_starts_reach_the_rollout_actors_and_show_in_the_metrics(recip
 def test_train_writes_a_checkpoint_and_resume_continues(cluster, smoke_run, tmp_path):
     import shutil
 
-    from formation.train import train
+    from formation.train import read_training_record, train
 
     out = tmp_path / "run"
     shutil.copytree(smoke_run, out)  # `formation train configs/smoke.yaml`, as a user runs it
@@ -151,6 +151,7 @@ def test_train_writes_a_checkpoint_and_resume_continues(cluster, smoke_run, tmp_
     assert first_run_steps >= 3000
     assert rows[-1]["learner/leader/lr"] == pytest.approx(1e-3)
     skipped_before = rows[-1]["faults/updates_skipped"]
+    before = read_training_record(out)
     # a fine-tuning phase: a lower lr, and learning once
     # the emptied replay holds 1200 records (smoke: 500), on fewer rollout actors (a run from a cluster going on
     # on a laptop)
@@ -171,6 +172,13 @@ def test_train_writes_a_checkpoint_and_resume_continues(cluster, smoke_run, tmp_
     assert resumed["faults/updates_skipped"] - skipped_before >= 0.125 * 1100
     result = json.loads((out / "result.json").read_text())
     assert result["env_steps"] == resumed["env_steps"]
+    # the training record (on the export's card) adds the resumed session and its wall time
+    after = read_training_record(out)
+    assert after["sessions"][0] == before["sessions"][0] and len(after["sessions"]) == 2
+    assert after["wall_seconds"] == pytest.approx(before["wall_seconds"] + after["sessions"][1]["seconds"])
+    assert after["sessions"][1]["seconds"] > 0 and after["started"] == before["started"]
+    assert after["sessions"][1]["env_steps"] == [first_run_steps, resumed["env_steps"]] == [
+        before["env_steps"], after["env_steps"]]
     # the replay ratio held over both runs (two actors, then one): each env step owed a quarter of an update,
     # run or (while the replay refilled) skipped
     ratio = (resumed["learner_updates"] + resumed["faults/updates_skipped"]) / resumed["env_steps"]
