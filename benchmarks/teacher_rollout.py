@@ -9,11 +9,10 @@ games follow the teacher's labels (``train.demonstrations`` 0.5), the others tak
 joint move with probability ``EPSILON``), so the states include episodes' first steps and states off the
 shortest path. Every step makes the calls of the setting's config in the rollout actor's order:
 ``Teacher.labels`` of all the games, ``Teacher.answers`` to every leader move (``answer_every_leader_move``),
-then ``Teacher.accepted`` (setting 1, ``any_shortest_move``) or ``safety_labels`` (settings 2-4,
-``safety_horizon: 4``). Prints milliseconds per env step (one game's step) for the teacher alone, the
-game's own stepping and one-time setup not counted, as CPU time of this process (less disturbed than wall
-time by other work on the machine), and a digest of every output so two versions can be compared: e.g.
-the committed version's ``formation`` unpacked with ``git archive HEAD formation | tar -x -C /tmp/old``
+then ``safety_labels`` (``safety_horizon: 4``). Prints milliseconds per env step (one game's step) for the
+teacher alone, the game's own stepping and one-time setup not counted, as CPU time of this process (less
+disturbed than wall time by other work on the machine), and a digest of every output so two versions can be
+compared: e.g. the committed version's ``formation`` unpacked with ``git archive HEAD formation | tar -x -C /tmp/old``
 and run with ``PYTHONPATH=/tmp/old``.
 """
 
@@ -51,11 +50,7 @@ def play(setting: int, n_steps: int, seed: int = 0) -> tuple[float, int, str]:
         start = time.process_time()
         joints = teacher.labels(scenarios, first_steps)
         answers = [teacher.answers(s, j) if j is not None else None for s, j in zip(scenarios, joints)]
-        if setting == 1:
-            extra = [teacher.accepted(s, j, first_step=bool(f)) if j is not None else 0
-                     for s, j, f in zip(scenarios, joints, first_steps)]
-        else:
-            extra = safety_labels(scenarios, config, SAFETY_HORIZON).tolist()
+        extra = safety_labels(scenarios, config, SAFETY_HORIZON).tolist()
         seconds += time.process_time() - start
         firsts += sum(first_steps)
         digest.update(repr((joints, answers, extra)).encode())

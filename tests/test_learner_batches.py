@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from formation.recipe.loss import ACCEPTED, DISCOUNTS, LABELS, RETURNS, module_batches
+from formation.recipe.loss import DISCOUNTS, LABELS, RETURNS, module_batches
 
 
 def test_followers_sharing_a_policy_each_contribute_their_own_rows():
@@ -65,45 +65,6 @@ def margin_loss(module: str, q, batch: dict, **config):
     config = SimpleNamespace(**{"safety_weight": 1.0, **config})
     loss = learner.compute_loss_for_module(module_id=module, config=config, batch=batch, fwd_out=fwd)
     return loss, learner._priority[module]
-
-
-def bits(*joints):
-    return sum(1 << (4 * leader + follower) for leader, follower in joints)
-
-
-def test_with_any_shortest_move_the_leader_accepts_its_moves_of_the_accepted_joint_actions():
-    sample = {"obs": np.zeros((3, 2, 2, 1), np.uint8), "next_obs": np.zeros((3, 2, 2, 1), np.uint8),
-              "actions": np.array([[0, 0], [1, 2], [3, 3]]), "returns": np.zeros((3, 2), np.float32),
-              "discounts": np.ones(3, np.float32), "labels": np.array([[0, 0], [0, 1], [-1, -1]]),
-              "answers": np.array([[[-1] * 4, [0, 1, 2, -1]], [[-1] * 4, [1, 1, 3, 3]], [[-1] * 4, [-1] * 4]]),
-              "accepted": np.array([bits((0, 0), (0, 1), (2, 1)), bits((0, 1)), 0]),
-              "weights": np.ones(3, np.float32)}
-    batches = module_batches(sample, ["leader", "follower"], frozenset({"follower"}), any_shortest_move="leader")
-    leader = batches["leader"][ACCEPTED]
-    # the leader: forward and forward-right start a shortest path in the first step, forward alone in the
-    # second; nothing where there is no label
-    assert leader.tolist() == [[True, False, True, False], [True, False, False, False], [False] * 4]
-    assert ACCEPTED not in batches["follower"]  # the follower learns its labels alone: its margin is towards them
-    assert ACCEPTED not in module_batches(sample, ["leader", "follower"], frozenset({"follower"}))["leader"]
-
-
-def test_the_leaders_margin_with_accepted_moves_compares_with_the_best_accepted_move():
-
-    import torch
-
-    from formation.recipe.loss import WEIGHTS, large_margin, large_margin_sets
-
-    q = torch.tensor([[1.0, 0.0, 3.0, -2.0], [0.0, 0.0, 0.0, 0.0]])
-    accepted = torch.tensor([[True, False, True, False], [False] * 4])
-    batch = {"actions": torch.tensor([0, 0]), "n_step_returns": torch.zeros(2), "n_step_discounts": torch.zeros(2),
-             "teacher_labels": torch.tensor([0, -1]), ACCEPTED: accepted, WEIGHTS: torch.ones(2)}
-    loss, priority = margin_loss("leader", q, batch, margin=1.0, margin_gap=5.0)
-    # towards the set: action 1 (0) + 5 against the best accepted (3): 2; towards the label alone it would be 7
-    assert large_margin_sets(q[:1], accepted[:1], 5.0).item() == 2.0
-    assert large_margin(q[:1], torch.tensor([0]), 5.0).item() == 7.0
-    td = torch.nn.functional.smooth_l1_loss(q[:, 0], torch.zeros(2))
-    torch.testing.assert_close(loss, td + 2.0)  # only the labelled step has a margin
-    np.testing.assert_allclose(priority, [1.0 + 2.0, 0.0])
 
 
 def test_the_margin_of_a_follower_that_answers_the_leader_compares_moves_in_the_leaders_row():

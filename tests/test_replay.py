@@ -245,20 +245,3 @@ def test_labels_and_answers_come_back_with_their_own_steps():
     assert (batch["answers"][stream0, 0] == -1).all()
     assert (batch["labels"][~stream0] == -1).all() and (batch["answers"][~stream0] == -1).all()
     assert stream0.any() and (~stream0).any()
-
-
-def test_accepted_joint_actions_come_back_with_their_own_steps():
-    replay = FrameReplay(100, (2, 2, 1), n_agents=2, frame_stack=1)
-    with_sets = hand_chunk([[0, 0]] * 6, [0] * 6, [0] * 6, first_flags=[1, 0, 0, 0, 0, 0])
-    with_sets.accepted = np.array([1 << k | 1 << (15 - k) for k in range(6)], np.uint16)
-    without = hand_chunk([[0, 0]] * 4, [0] * 3 + [1], [0] * 4, stream=1, first_flags=[1, 0, 0, 0])
-    for part in (with_sets, without):
-        part.labels = np.zeros((len(part), 2), np.int8)
-    chunk = concatenate([with_sets, without])
-    assert chunk.accepted.dtype == np.uint16 and (chunk.accepted[6:] == 0).all()
-    replay.add(chunk)
-    batch = replay.sample(200, n_step=1, gamma=0.9)
-    k = batch["obs"][:, 0, 0, 0].astype(np.int64)  # hand_chunk's frames number the records of a chunk
-    stream0 = batch["ids"] < 6
-    assert (batch["accepted"][stream0] == (1 << k[stream0]) | (1 << (15 - k[stream0]))).all()
-    assert (batch["accepted"][~stream0] == 0).all() and stream0.any() and (~stream0).any()

@@ -225,45 +225,9 @@ def test_labels_of_a_batch_are_each_states_own_label_and_robust_first_steps_keep
         assert kept[label] == max(kept.values()) and min(kept.values()) < max(kept.values())
 
 
-def test_accepted_joint_actions_are_those_that_start_a_shortest_path_and_hold_the_label():
-    teacher = Teacher(SMALL, slack=200, robust_first_step=True)
-    several = 0
-    for scenario, joint, best in labelled_states(teacher, 40):
-        mask = teacher.accepted(scenario, joint)
-        accepted = {(m // 4, m % 4) for m in range(16) if mask >> m & 1}
-        assert joint in accepted
-        # every accepted joint action leaves a path as short as the label's, and no other does
-        for other in itertools.product(range(4), repeat=2):
-            assert (other in accepted) == (steps_after(SMALL, scenario, other) == best), (scenario, other)
-        several += len(accepted) > 1
-        # on a first step the robust label stands alone: the screens do not show the motion yet
-        first = teacher.label(scenario, first_step=True)
-        assert teacher.accepted(scenario, first, first_step=True) == 1 << (4 * first[0] + first[1])
-    assert several > 10
-    with pytest.raises(ValueError, match="one follower"):
-        Teacher(GameConfig.from_setting(None, height=9, width=9, n_obstacles=1, n_followers=2), slack=6,
-                ).accepted(scenarios(SMALL, [0])[0], (0, 0, 0))
-
-
-def test_rollout_actor_stores_the_accepted_joint_actions_of_each_labelled_state(rollout_actor):
-    actor = rollout_actor({"train.follower_answers_leader": True, "train.any_shortest_move": "leader"})
-    game, teacher = actor.rollout.game, actor._teacher
-    game.steps[:] = 1
-    joints = actor._teacher_joints()
-    accepted = actor._accepted(joints)
-    for i in range(game.batch_size):
-        if joints[i, 0] < 0:
-            assert accepted[i] == 0
-        else:
-            assert accepted[i] == teacher.accepted(game.scenario(i), tuple(int(a) for a in joints[i]))
-    assert (joints[:, 0] >= 0).any()
-    chunk = actor.rollout.step(joints.clip(min=0), labels=joints, accepted=accepted)
-    assert (chunk.accepted[: game.batch_size] == accepted).all()
-
-
 def rollout_calls(teacher, config, steps):
     """What a rollout actor asks the teacher at every step of a ``steps`` long rollout of 8 games (labels, answers to
-    every leader move, accepted joint actions, safety labels), in its order; and the states and first steps asked
+    every leader move, safety labels), in its order; and the states and first steps asked
     about, per step. Half the games play the labels, the others the label's or a random leader move (30%) and
     the answer to it or a random joint move (30%), so the states include first steps and states off the shortest
     paths."""
@@ -288,14 +252,12 @@ def rollout_calls(teacher, config, steps):
 def teacher_outputs(teacher, config, states, firsts):
     joints = teacher.labels(states, firsts)
     answers = [teacher.answers(s, j) if j is not None else None for s, j in zip(states, joints)]
-    accepted = [teacher.accepted(s, j, first_step=bool(f)) if j is not None else 0
-                for s, j, f in zip(states, joints, firsts)]
-    return joints, answers, accepted, safety_labels(states, config, 4).tolist()
+    return joints, answers, safety_labels(states, config, 4).tolist()
 
 
 @pytest.mark.parametrize("setting", [1, 2])
 def test_the_teacher_tells_a_rollout_what_searches_of_each_state_alone_tell(setting, monkeypatch):
-    """Along epsilon-greedy rollouts, the teacher's labels, answers, accepted joint actions and safety labels are those
+    """Along epsilon-greedy rollouts, the teacher's labels, answers and safety labels are those
     of a reference teacher that searches every state afresh (nothing kept from the searches of earlier states of
     an episode) with layers of cells (no move table) and full searches only (no beam), and plays a step in the game
     to see whether a joint action survives it."""

@@ -1,5 +1,7 @@
 """The training config: defaults, YAML loading, overrides, and one-line errors naming the key."""
 
+import re
+
 import pytest
 import yaml
 
@@ -66,14 +68,8 @@ def test_numbers_in_exponent_notation_are_numbers_in_a_file_and_in_overrides(tmp
     ({"train": {"answer_every_leader_move": True, "follower_answers_leader": False}},
      "train.answer_every_leader_move"),
     ({"train": {"answer_every_leader_move": True, "dagger": False}}, "train.answer_every_leader_move"),
-    ({"train": {"any_shortest_move": True}}, "train.any_shortest_move"),
-    ({"train": {"any_shortest_move": "follower"}}, "train.any_shortest_move"),
-    ({"train": {"any_shortest_move": "leader", "follower_answers_leader": False}}, "train.any_shortest_move"),
-    ({"train": {"any_shortest_move": "toward"}}, "train.any_shortest_move"),  # a value that lost
-    ({"train": {"any_shortest_move": "team"}}, "train.any_shortest_move"),
     ({"train": {"potential": "planner"}}, "train.potential"),
     ({"train": {"safety_horizon": "path"}}, "train.safety_horizon"),
-    ({"game": {"n_followers": 2}, "train": {"any_shortest_move": "leader"}}, "train.any_shortest_move"),
     ({"train": {"margin_gap": -1}}, "train.margin_gap"),
     ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),
     ({"train": {"leader_window": [1, 2, -3]}}, "train.leader_window"),
@@ -88,7 +84,7 @@ def test_bad_values_name_the_key(values, names):
 REMOVED_VALUES = [("lr_end", 1e-5), ("failure_restarts", 0.25), ("mirror", True), ("row_scan", 8),
                   ("label_order", "toward"), ("label_preference", 0.1), ("safety_priority", 1.0),
                   ("rollout_veto", True), ("safety_slack", 1), ("tolerant_formation", True),
-                  ("follower_labels", "response")]
+                  ("follower_labels", "response"), ("any_shortest_move", "leader")]
 
 
 @pytest.mark.parametrize("key, value", REMOVED_VALUES)
@@ -97,12 +93,13 @@ def test_a_removed_option_that_would_do_something_is_refused_in_one_line_naming_
 
     assert {k for k, _ in REMOVED_VALUES} == set(REMOVED)
     message = one_line_error({"train": {key: value}})
-    assert message.startswith(f"train.{key}: removed in 0.2 (") and message.endswith("/ absent")
+    version = REMOVED[key][2]
+    assert message.startswith(f"train.{key}: removed in {version} (") and message.endswith("/ absent")
     # a saved run's config.yaml (formation train --resume, formation.policy.load) alike
     saved = RunConfig().to_dict()
     saved["train"][key] = value
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(saved))
-    with pytest.raises(ConfigError, match=rf"^train\.{key}: removed in 0\.2"):
+    with pytest.raises(ConfigError, match=rf"^train\.{key}: removed in {re.escape(version)} "):
         RunConfig.load_saved(tmp_path / "config.yaml")
 
 
@@ -110,10 +107,10 @@ def test_a_saved_run_that_names_removed_options_at_their_neutral_values_loads_wi
     from formation.recipe.config import REMOVED
 
     saved = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "grid"}}).to_dict()
-    # what 0.1 wrote into every run folder's config.yaml
+    # what 0.1 wrote into every run folder's config.yaml, and 0.2 (any_shortest_move)
     saved["train"].update(lr_end=None, failure_restarts=0.0, mirror=False, row_scan=0, label_order="lockstep",
                           label_preference=0.0, safety_priority=0.0, rollout_veto=False, safety_slack=0,
-                          tolerant_formation=False, follower_labels="teacher")
+                          tolerant_formation=False, follower_labels="teacher", any_shortest_move="none")
     assert set(REMOVED) <= set(saved["train"])
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(saved))

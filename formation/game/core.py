@@ -32,13 +32,9 @@ COLLISION_OFFSETS = np.array([[0, 0], [-1, 0], [1, 0], [0, -1], [0, 1]], dtype=n
 MOVES = np.array([[-1, 0], [-1, -1], [-1, 1], [0, 0]], dtype=np.int32)
 
 
-def joint_mask(joints) -> int:
-    """Joint actions of a leader and one follower as a bit mask: bit ``4 * leader's move + follower's move``."""
-    return sum(1 << (len(MOVES) * leader + follower) for leader, follower in joints)
-
-
 def joint_mask_bits(masks: np.ndarray) -> np.ndarray:
-    """(N, leader's move, follower's move) bools of (N,) ``joint_mask`` bit masks."""
+    """(N, leader's move, follower's move) bools of (N,) bit masks of joint actions of a leader and one follower:
+    bit ``4 * leader's move + follower's move``."""
     moves = len(MOVES)
     return ((np.asarray(masks)[:, None] >> np.arange(moves * moves)) & 1).astype(bool).reshape(-1, moves, moves)
 

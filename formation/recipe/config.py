@@ -30,24 +30,25 @@ from formation.config import ConfigError, GameConfig
 from formation.recipe.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
-ANY_SHORTEST_MOVE = ("none", "leader")  # train.any_shortest_move: whose margin accepts more
 EXPLORATIONS = ("independent", "joint")
 FORECAST_SPEEDS = (1, 2)  # the obstacle speeds formation.recipe.qnet.ObstacleForecast reads
 
 # options tried and not kept (docs/lab/TRAINING.md has their numbers; git history their code): a saved run's
 # config.yaml or a policy card may still name one at its neutral value, which is dropped; any other value is refused
-REMOVED: dict[str, tuple[tuple[Any, ...], str]] = {
-    "lr_end": ((None,), "a falling learning rate did not help"),
-    "failure_restarts": ((0, 0.0), "restarts from failures did not help"),
-    "mirror": ((False,), "mirrored batches did not help"),
-    "row_scan": ((0,), "the row scan did not help"),
-    "label_order": (("lockstep",), "the other label orders did not help; labels follow the lockstep order"),
-    "label_preference": ((0, 0.0), "the label preference did not help"),
-    "safety_priority": ((0, 0.0), "safety priorities did not help"),
-    "rollout_veto": ((False,), "the vetoed rollouts did not help"),
-    "safety_slack": ((0,), "path safety labels did not help"),
-    "tolerant_formation": ((False,), "tolerant labels did not help"),
-    "follower_labels": (("teacher",), "the responding followers' labels did not help"),
+REMOVED: dict[str, tuple[tuple[Any, ...], str, str]] = {  # key: (neutral values, why, the version that removed it)
+    "lr_end": ((None,), "a falling learning rate did not help", "0.2"),
+    "failure_restarts": ((0, 0.0), "restarts from failures did not help", "0.2"),
+    "mirror": ((False,), "mirrored batches did not help", "0.2"),
+    "row_scan": ((0,), "the row scan did not help", "0.2"),
+    "label_order": (("lockstep",), "the other label orders did not help; labels follow the lockstep order", "0.2"),
+    "label_preference": ((0, 0.0), "the label preference did not help", "0.2"),
+    "safety_priority": ((0, 0.0), "safety priorities did not help", "0.2"),
+    "rollout_veto": ((False,), "the vetoed rollouts did not help", "0.2"),
+    "safety_slack": ((0,), "path safety labels did not help", "0.2"),
+    "tolerant_formation": ((False,), "tolerant labels did not help", "0.2"),
+    "follower_labels": (("teacher",), "the responding followers' labels did not help", "0.2"),
+    "any_shortest_move": (("none",), "the leader's margin towards any shortest move helped on setting 1 only and "
+                          "lost on settings 2-3; the one recipe keeps the label", "0.3"),
 }
 
 
@@ -56,11 +57,11 @@ def drop_removed(section: str, values: dict[str, Any]) -> dict[str, Any]:
     stand at their neutral value; one that does not is refused in one line naming it."""
     out = dict(values)
     for key in [k for k in out if k in REMOVED]:
-        neutral, why = REMOVED[key]
+        neutral, why, version = REMOVED[key]
         value = out.pop(key)
         if not any(value == v and type(value) is type(v) for v in neutral):
             allowed = " / ".join("null" if v is None else str(v).lower() for v in neutral)
-            raise ConfigError(f"{section}.{key}: removed in 0.2 ({why}; docs/lab/TRAINING.md), so {value!r} is "
+            raise ConfigError(f"{section}.{key}: removed in {version} ({why}; docs/lab/TRAINING.md), so {value!r} is "
                               f"refused; allowed: {allowed} / absent")
     return out
 
@@ -109,11 +110,6 @@ class TrainSettings:
     # teacher's answer to every move the leader could make there (formation.recipe.teacher.Teacher.answers), not
     # only to the one it made
     answer_every_leader_move: bool = False
-    # DAgger's margin accepts every move that starts a shortest path, not only the label's
-    # (formation.recipe.loss.large_margin_sets): "leader", the leader's margin is towards the best of its moves
-    # that start one with some follower move, and the follower still learns the teacher's answers; "none", the
-    # label's move alone. Needs dagger, follower_answers_leader and one follower
-    any_shortest_move: str = "none"
     prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
     followers_share_policy: bool = True  # all followers act with one network (module)
     hidden: int = 256  # units of the dueling heads' hidden layers
@@ -186,12 +182,6 @@ class TrainSettings:
         if self.answer_every_leader_move and not (self.follower_answers_leader and self.dagger):
             raise ConfigError("train.answer_every_leader_move: true is not allowed without "
                               "train.follower_answers_leader: true and train.dagger: true; allowed: false")
-        if self.any_shortest_move not in ANY_SHORTEST_MOVE:
-            raise ConfigError(f"train.any_shortest_move: {self.any_shortest_move!r} is not allowed; "
-                              f"allowed: {', '.join(ANY_SHORTEST_MOVE)}")
-        if self.any_shortest_move != "none" and not (self.follower_answers_leader and self.dagger):
-            raise ConfigError(f"train.any_shortest_move: {self.any_shortest_move} is not allowed without "
-                              "train.follower_answers_leader: true and train.dagger: true; allowed: none")
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
         if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0
@@ -324,9 +314,6 @@ class RunConfig:
 
     def __post_init__(self) -> None:
         patches = self.game.obs_type == "pixels" and not self.train.screen_cells
-        if self.train.any_shortest_move != "none" and self.game.n_followers != 1:
-            raise ConfigError(f"train.any_shortest_move: {self.train.any_shortest_move} needs game.n_followers: 1 "
-                              f"(not {self.game.n_followers}); allowed: none")
         if self.refit.rounds and self.game.n_followers != 1:
             raise ConfigError(f"refit.rounds: {self.refit.rounds} needs game.n_followers: 1 "
                               f"(not {self.game.n_followers}); allowed: 0")
@@ -407,8 +394,7 @@ def section_of(name: str, values: dict[str, Any] | None) -> Any:
 LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("train", "screen_cells"): False,
                                           ("train", "obstacle_forecast"): False,
                                           ("train", "follower_answers_leader"): False,
-                                          ("train", "answer_every_leader_move"): False,
-                                          ("train", "any_shortest_move"): "none"}
+                                          ("train", "answer_every_leader_move"): False}
 
 
 class _YamlLoader(yaml.SafeLoader):
@@ -504,11 +490,11 @@ def markdown() -> str:
             meaning = docs[key].replace("|", "\\|")
             out.append(f"| `{key}` | `{json.dumps(value)}` | {meaning} |")
         out.append("")
-    out += ["## removed", "", "Options removed in 0.2 (tried, not better: docs/lab/TRAINING.md). A saved run or a "
+    out += ["## removed", "", "Options removed (tried, not better: docs/lab/TRAINING.md). A saved run or a "
             "policy card that names one at its neutral value loads without it; any other value is refused.", "",
-            "| option | neutral value | why |", "|---|---|---|"]
-    for key, (neutral, why) in REMOVED.items():
-        out.append(f"| `{key}` | `{json.dumps(neutral[0])}` | {why} |")
+            "| option | neutral value | why | removed in |", "|---|---|---|---|"]
+    for key, (neutral, why, version) in REMOVED.items():
+        out.append(f"| `{key}` | `{json.dumps(neutral[0])}` | {why} | {version} |")
     return "\n".join(out) + "\n"
 
 

@@ -15,21 +15,17 @@ from formation.recipe.qnet import N_ACTIONS
 # a module batch's columns; the first three are RLlib's own names (ray.rllib.core.columns.Columns)
 OBS, NEXT_OBS, ACTIONS = "obs", "new_obs", "actions"
 RETURNS, DISCOUNTS, LABELS, WEIGHTS = "n_step_returns", "n_step_discounts", "teacher_labels", "weights"
-ACCEPTED = "teacher_accepted"  # train.any_shortest_move: the moves the margin accepts, bools beside LABELS
 SAFE = "safe_joint_moves"  # train.safety_horizon: (N, 16) bools, the joint moves that start safe steps
 
 
 def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
-                   answering: frozenset[str] = frozenset(), any_shortest_move: str = "none", safety: bool = False
-                   ) -> dict[str, dict[str, np.ndarray]]:
+                   answering: frozenset[str] = frozenset(), safety: bool = False) -> dict[str, dict[str, np.ndarray]]:
     """Split a replay sample (all agents) into one batch per module; agents that share a module
     (followers with one policy) contribute one row each for every sampled step. A module in
     ``answering`` (it answers the leader) gets actions as pairs with the leader's move, ``4 * leader +
     own`` (its Q-values' index), and labels as one own move per move of the leader, (N, 4): the
     sample's ``answers`` where it has them, its label in the row of the move the leader made, -1 where
-    there is none. With ``any_shortest_move`` "leader" (one follower), the leader's module also gets
-    ``ACCEPTED``, (N, 4) bools: every move of the leader that the sample's ``accepted`` joint actions hold
-    (with any follower move), and the label's move. With ``safety`` every module gets ``SAFE``, the sample's
+    there is none. With ``safety`` every module gets ``SAFE``, the sample's
     ``safe`` joint moves as (N, 16) bools (leader's move, follower's move, row by row), one row per agent of
     the module."""
     rows: dict[str, list[int]] = {}
@@ -48,18 +44,9 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
                        ACTIONS: np.concatenate(actions),
                        RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
                        DISCOUNTS: shared["discounts"], LABELS: np.concatenate(labels), WEIGHTS: shared["weights"]}
-        if any_shortest_move == "leader" and agents == [0]:
-            out[module][ACCEPTED] = _accepted_moves(sample["accepted"], labels[0])
         if safety:
             out[module][SAFE] = _repeat(joint_mask_bits(sample["safe"]).reshape(len(leader), -1), len(agents))
     return out
-
-
-def _accepted_moves(accepted: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """The leader's accepted moves, (N, 4) bools (see ``module_batches``): those that start a shortest path
-    with some follower move, and each label's move (``labels`` (N,))."""
-    moves = joint_mask_bits(accepted).any(2)  # (N, leader's move, follower's move) -> the leader's
-    return moves | ((labels[:, None] == np.arange(N_ACTIONS)) & (labels[:, None] >= 0))
 
 
 def _answer_rows(sample: dict[str, np.ndarray], agent: int, leader: np.ndarray) -> np.ndarray:
@@ -134,8 +121,7 @@ def dqn_loss(batch: dict, q: torch.Tensor, q_next_online: torch.Tensor, q_next_t
         J     = J_DQ + margin * J_E  (+ safety_weight * BCE(safety))     on the steps with a teacher's label
         p     = |Q(s, a) - y| + margin * J_E                             the replay's priority
 
-    Q is the dueling head's (``formation.recipe.qnet.dueling``). With ``ACCEPTED`` (``train.any_shortest_move``)
-    Q(s, a_E) is the best of the accepted moves'."""
+    Q is the dueling head's (``formation.recipe.qnet.dueling``)."""
     q_taken = q.gather(1, batch[ACTIONS].long().unsqueeze(1)).squeeze(1)
     with torch.no_grad():
         y = double_q_target(batch[RETURNS], batch[DISCOUNTS], q_next_online, q_next_target)
@@ -143,8 +129,7 @@ def dqn_loss(batch: dict, q: torch.Tensor, q_next_online: torch.Tensor, q_next_t
     loss = (batch[WEIGHTS] * torch.nn.functional.smooth_l1_loss(q_taken, y, reduction="none")).mean()
     priority = td.detach().abs()
     if margin > 0:
-        accepted = batch[ACCEPTED].bool().unsqueeze(1) if ACCEPTED in batch else _label_moves(batch[LABELS], q.shape[1])
-        large_margin_loss, taught = _margin(q, accepted, margin_gap)
+        large_margin_loss, taught = _margin(q, _label_moves(batch[LABELS], q.shape[1]), margin_gap)
         if taught.any():
             loss = loss + margin * large_margin_loss[taught].mean()
             # prioritized replay also revisits the states where the module disagrees with the teacher

@@ -39,9 +39,7 @@ class Chunk:
     ``labels`` (N, A) int, optional: a teacher's action for each agent in this state (the
     planner's, for demonstrations and DAgger), -1 where there is none. ``answers`` (N, A, M) int,
     optional: each agent's teacher action if the leader made each of its M moves
-    (``train.answer_every_leader_move``), -1 where there is none. ``accepted`` (N,) int, optional: the
-    joint actions that start a shortest path, as a bit mask (``Teacher.accepted``,
-    ``train.any_shortest_move``), 0 where there is none. ``safe`` (N,) int, optional: the joint actions
+    (``train.answer_every_leader_move``), -1 where there is none. ``safe`` (N,) int, optional: the joint actions
     that start ``train.safety_horizon`` steps free of failure, as a bit mask
     (``formation.planner.surviving_first_moves_many``), 0 where there is none.
     """
@@ -56,7 +54,6 @@ class Chunk:
     truncated: np.ndarray
     labels: np.ndarray | None = None
     answers: np.ndarray | None = None
-    accepted: np.ndarray | None = None
     safe: np.ndarray | None = None
 
     def __len__(self) -> int:
@@ -84,8 +81,7 @@ class FrameReplay:
         self.terminal = np.zeros(capacity, bool)
         self.labels = np.full((capacity, n_agents), -1, np.int8)
         self.answers = np.full((capacity, n_agents, len(MOVES)), -1, np.int8)
-        self.accepted = np.zeros(capacity, np.uint16)  # one bit per joint action of a leader and one follower
-        self.safe = np.zeros(capacity, np.uint16)  # likewise
+        self.safe = np.zeros(capacity, np.uint16)  # one bit per joint action of a leader and one follower
         self.added = 0  # records ever added; the next record's id
         self._stream_last: dict[int, int] = {}
         self.prioritized = prioritized
@@ -112,7 +108,6 @@ class FrameReplay:
         self.terminal[slots] = chunk.terminal
         self.labels[slots] = chunk.labels if chunk.labels is not None else -1
         self.answers[slots] = chunk.answers if chunk.answers is not None else -1
-        self.accepted[slots] = chunk.accepted if chunk.accepted is not None else 0
         self.safe[slots] = chunk.safe if chunk.safe is not None else 0
         self.next[slots] = NONE
         # Link each record to the previous record of its stream (itself at an episode start).
@@ -146,7 +141,7 @@ class FrameReplay:
     def nbytes(self) -> int:
         return sum(a.nbytes for a in (self.frames, self.ids, self.prev, self.next, self.actions, self.rewards,
                                       self.terminated, self.truncated, self.terminal, self.labels,
-                                      self.answers, self.accepted, self.safe))
+                                      self.answers, self.safe))
 
     # ------------------------------------------------------------------ reading
     def _valid(self, ids: np.ndarray) -> np.ndarray:
@@ -198,7 +193,7 @@ class FrameReplay:
 
     def sample(self, batch_size: int, n_step: int = 1, gamma: float = 0.99, beta: float = 0.4) -> dict:
         """A batch of transitions for all agents: obs and next_obs stacks, actions, n-step returns,
-        discounts (0 after termination), teacher labels, answers, accepted and safe joint actions, and ids /
+        discounts (0 after termination), teacher labels, answers, safe joint actions, and ids /
         importance weights for priorities."""
         if self.size == 0:
             raise ValueError("replay: sample() on an empty replay")
@@ -222,8 +217,7 @@ class FrameReplay:
         slots = ids % self.capacity
         batch = {"obs": obs, "next_obs": next_obs, "actions": self.actions[slots].astype(np.int64),
                  "returns": returns, "discounts": discounts, "labels": self.labels[slots].astype(np.int64),
-                 "answers": self.answers[slots].astype(np.int64), "accepted": self.accepted[slots].astype(np.int64),
-                 "safe": self.safe[slots].astype(np.int64), "ids": ids}
+                 "answers": self.answers[slots].astype(np.int64), "safe": self.safe[slots].astype(np.int64), "ids": ids}
         if self._priority is not None:
             p = self._priority.get(slots) / self._priority.total
             weights = (self.size * p) ** (-beta)

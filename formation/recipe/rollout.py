@@ -92,12 +92,11 @@ class GameRollout:
         return frames.take(rows, axis=1).take(cols, axis=2)  # a new (B, H, W, c) array, in C order
 
     def step(self, actions: np.ndarray, labels: np.ndarray | None = None, answers: np.ndarray | None = None,
-             accepted: np.ndarray | None = None, safe: np.ndarray | None = None) -> Chunk:
+             safe: np.ndarray | None = None) -> Chunk:
         """Play one joint action per game; return the records of this step. ``labels`` (B, 1+k):
         a teacher's action for each agent in the state before the step, -1 where there is none;
-        ``answers`` (B, 1+k, moves): its action for each move the leader could make there; ``accepted``
-        (B,): the joint actions that start a shortest path there, ``safe`` (B,): those that start safe steps
-        (see ``Chunk``)."""
+        ``answers`` (B, 1+k, moves): its action for each move the leader could make there; ``safe`` (B,): the
+        joint actions that start safe steps (see ``Chunk``)."""
         g = self.game
         frames_before, first = self._frames, self._first
         g.step(actions)
@@ -112,7 +111,6 @@ class GameRollout:
                         rewards=rewards, terminated=g.terminated.copy(), truncated=g.truncated.copy(),
                         labels=np.full(actions.shape, -1, np.int8) if labels is None else labels.astype(np.int8),
                         answers=None if answers is None else answers.astype(np.int8),
-                        accepted=None if accepted is None else accepted.astype(np.uint16),
                         safe=None if safe is None else safe.astype(np.uint16))
         self._returns += g.rewards
         if done.any():
@@ -161,16 +159,14 @@ class GameRollout:
 
 
 def concatenate(chunks: list[Chunk]) -> Chunk:
-    """One chunk of the records of ``chunks``, in order; ``answers`` -1 and ``accepted`` and ``safe`` 0 for
-    those without, None if none has."""
+    """One chunk of the records of ``chunks``, in order; ``answers`` -1 and ``safe`` 0 for those without,
+    None if none has."""
     fields = ("streams", "frames", "first", "terminal", "actions", "rewards", "terminated", "truncated", "labels")
     out = Chunk(**{f: np.concatenate([getattr(c, f) for c in chunks]) for f in fields})
     if any(c.answers is not None for c in chunks):
         moves = len(MOVES)
         out.answers = np.concatenate([c.answers if c.answers is not None
                                       else np.full((len(c), c.actions.shape[1], moves), -1, np.int8) for c in chunks])
-    for mask in ("accepted", "safe"):
-        if any(getattr(c, mask) is not None for c in chunks):
-            setattr(out, mask, np.concatenate([getattr(c, mask) if getattr(c, mask) is not None
-                                               else np.zeros(len(c), np.uint16) for c in chunks]))
+    if any(c.safe is not None for c in chunks):
+        out.safe = np.concatenate([c.safe if c.safe is not None else np.zeros(len(c), np.uint16) for c in chunks])
     return out

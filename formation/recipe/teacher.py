@@ -16,7 +16,6 @@ import numpy as np
 
 from formation.config import GameConfig
 from formation.game import MOVES, BatchedGame, Scenario
-from formation.game.core import joint_mask
 from formation.planner import (
     FirstMovesAhead,
     lower_bound,
@@ -92,17 +91,6 @@ class Teacher:
         """``answer`` to each move the leader could make, in the order of the moves
         (``train.answer_every_leader_move``)."""
         return [self.answer(scenario, joint, move) for move in range(len(MOVES))]
-
-    def accepted(self, scenario: Scenario, joint: tuple[int, ...], first_step: bool = False) -> int:
-        """The joint actions a learner may take for ``joint``, the state's label (``train.any_shortest_move``),
-        as a bit mask: bit ``4 * leader's move + follower's move`` (one follower) of every joint action that
-        starts a shortest path; only the label's on a first step with ``robust_first_step``."""
-        if self.config.n_followers != 1:
-            raise ValueError(f"Teacher.accepted: one follower only, not {self.config.n_followers}")
-        starts = set()
-        if not (first_step and self.robust_first_step):
-            starts = self._starts(scenario) or set()
-        return joint_mask(starts | {joint})
 
     def _shortest_with(self, scenario: Scenario, leader_move: int) -> tuple[int, ...] | None:
         """The first joint action in the order with ``leader_move`` that starts a shortest path; None if none does."""

@@ -478,9 +478,8 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
             remote_worker_ids=runner_ids, local_env_runner=False)
         agents = module_of_agent(self.run)
         answering = [m for m in set(agents) if answers_leader(self.run, m)]
-        any_shortest, safety = self.run.train.any_shortest_move, self.run.train.safety_head
-        self.learner_group.foreach_learner(
-            lambda learner: learner.set_replays(replays, agents, answering, any_shortest, safety))
+        safety = self.run.train.safety_head
+        self.learner_group.foreach_learner(lambda learner: learner.set_replays(replays, agents, answering, safety))
 
     def restore_env_runners(self, env_runner_group):
         restored = super().restore_env_runners(env_runner_group)

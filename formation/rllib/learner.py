@@ -99,14 +99,12 @@ class FormationLearner(DQNTorchLearner):
                 batch[module_id][prepared] = x
 
     def set_replays(self, handles: list, module_of_agent: list[str], answering: list[str] = (),
-                    any_shortest_move: str = "none", safety: bool = False) -> bool:
-        """The replay shards to pull from, each agent's module, the modules that answer the leader, whether
-        the margin accepts every move that starts a shortest path (``train.any_shortest_move``), and whether
+                    safety: bool = False) -> bool:
+        """The replay shards to pull from, each agent's module, the modules that answer the leader, and whether
         the modules learn a safety head."""
         self._replays = list(handles)
         self._module_of_agent = list(module_of_agent)
         self._answering = frozenset(answering)
-        self._any_shortest_move = any_shortest_move
         self._safety = safety
         self._prefetch = None
         self._turn = 0
@@ -161,8 +159,7 @@ class FormationLearner(DQNTorchLearner):
         priorities (None without ``train.prioritized``)."""
         clock = self.clock
         with clock("batch"):
-            batches = module_batches(sample, self._module_of_agent, self._answering,
-                                     self._any_shortest_move, self._safety)
+            batches = module_batches(sample, self._module_of_agent, self._answering, self._safety)
             n = len(sample["ids"])
             batch = MultiAgentBatch({m: SampleBatch(b) for m, b in batches.items()}, env_steps=n)
         with clock("update"):  # RLlib's update: to the device, forward, backward, step, target sync

@@ -125,15 +125,6 @@ class RolloutActor(EnvRunner, Checkpointable):
         return safety_labels([game.scenario(i) for i in range(game.batch_size)], game.config,
                              self.run.train.safety_horizon)
 
-    def _accepted(self, joints: np.ndarray) -> np.ndarray:
-        """``train.any_shortest_move``: the joint actions that start a shortest path from every game's present
-        state (``Teacher.accepted``, bit masks), 0 where the teacher has no label."""
-        game, accepted = self.rollout.game, np.zeros(self.rollout.batch_size, np.uint16)
-        for i in np.flatnonzero(joints[:, 0] >= 0):
-            accepted[i] = self._teacher.accepted(game.scenario(i), tuple(int(a) for a in joints[i]),
-                                                 first_step=bool(game.steps[i] == 0))
-        return accepted
-
     def _labels(self, joints: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """The labels to learn from, and the answers (``Chunk``) or None: the teacher's ``joints``; with
         ``train.follower_answers_leader`` the teacher's answer to the move the leader plays (``actions``), -1
@@ -195,15 +186,13 @@ class RolloutActor(EnvRunner, Checkpointable):
                         actions[i] = np.where(joints[i] >= 0, joints[i], actions[i])
                     elif self._plans[i]:
                         actions[i] = labels[i] = self._plans[i].pop(0)
-                answers = accepted = None
+                answers = None
                 if run.train.dagger:
                     labels, answers = self._labels(joints, actions)
-                if run.train.any_shortest_move != "none":
-                    accepted = self._accepted(joints)
             with clock("safety"):
                 safe = self._safe() if run.train.safety_head else None
             with clock("game"):
-                chunks.append(rollout.step(actions, labels=labels, answers=answers, accepted=accepted, safe=safe))
+                chunks.append(rollout.step(actions, labels=labels, answers=answers, safe=safe))
             if not run.train.dagger:
                 with clock("teacher"):
                     for i in np.flatnonzero(rollout.game.steps[: self._demo_games] == 0):
