@@ -3,4 +3,5 @@
 ``formation.policy.load`` plays a trained team with torch alone; the ``formation`` command trains,
 evaluates, exports and draws (``formation --help``)."""
 
-__version__ = "0.4.0.dev0"  # as pyproject.toml says (tests/test_cli.py); `formation --version` asks the installed one first
+# as pyproject.toml says (tests/test_cli.py); `formation --version` asks the installed one first
+__version__ = "0.4.0.dev0"
