@@ -100,7 +100,9 @@ def test_a_killed_learner_stops_the_run_in_one_line_and_keeps_the_last_checkpoin
 
 
 def rows_of(out) -> list[dict]:
-    return [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    """The metrics rows written whole so far (a running driver may be midway through the last line)."""
+    text = (out / "metrics.jsonl").read_text()
+    return [json.loads(line) for line in text[: text.rfind("\n") + 1].splitlines()]
 
 
 def wait_for(proc: subprocess.Popen, ready: Callable[[], bool], what: str) -> None:
