@@ -60,13 +60,13 @@ def _answer_rows(sample: dict[str, np.ndarray], agent: int, leader: np.ndarray) 
     return rows
 
 
-def _margin(q: torch.Tensor, accepted: torch.Tensor, gap: float) -> tuple[torch.Tensor, torch.Tensor]:
+def _margin(q: torch.Tensor, labelled: torch.Tensor, gap: float) -> tuple[torch.Tensor, torch.Tensor]:
     """DQfD's J_E = max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E), a_E the teacher's (planner's) action, per step of a
-    module batch, summed over its labelled rows; with several ``accepted`` moves (N, rows, moves), Q(s, a_E)
-    is the best of theirs. Also whether each step has a labelled row. A row with none accepts all: no loss."""
-    taught_rows = accepted.any(2)
-    moves = accepted.shape[2]
-    rows = large_margin_sets(q.reshape(-1, moves), (accepted | ~taught_rows[..., None]).reshape(-1, moves), gap)
+    module batch, summed over its labelled rows (``labelled``, (N, rows, moves): each row's label move,
+    ``_label_moves``). Also whether each step has a labelled row. A row without a label accepts all: no loss."""
+    taught_rows = labelled.any(2)
+    moves = labelled.shape[2]
+    rows = large_margin_sets(q.reshape(-1, moves), (labelled | ~taught_rows[..., None]).reshape(-1, moves), gap)
     return (rows.view(len(q), -1) * taught_rows).sum(1), taught_rows.any(1)
 
 
