@@ -64,9 +64,9 @@ def head():
             time.sleep(1)
         yield address, env
     finally:
-        try:  # `ray stop` for this head only; what still runs after a few seconds is killed below
+        try:  # `ray stop` for this head only
             os.killpg(proc.pid, signal.SIGTERM)
-            proc.wait(timeout=10)
+            proc.wait(timeout=60)
         except (ProcessLookupError, subprocess.TimeoutExpired):
             pass
         try:

@@ -118,7 +118,8 @@ def test_a_killed_driver_leaves_a_checkpoint_that_resume_continues_and_sigterm_s
     a checkpoint saved, exit status 130."""
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "formation.cli", "train", SMOKE, "--out", str(out),
-           "--set", "train.total_env_steps=1000000", "--set", "checkpoint.every_iterations=1"]
+           "--set", "train.total_env_steps=1000000", "--set", "checkpoint.every_iterations=1",
+           "--set", "resources.num_rollout_actors=1"]  # the driver is the point: one process fewer to start, twice
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     try:
