@@ -13,10 +13,9 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	# the CPU build of torch first, so nothing pulls a multi-GB CUDA build. --no-compile: byte-compiling
-	# every file of torch and Ray took two thirds of the install; Python compiles what it imports, once
-	$(BIN)/python -m pip install -q --no-compile '$(TORCH)' $(if $(TORCH_INDEX),--index-url '$(TORCH_INDEX)')
-	$(BIN)/python -m pip install -q --no-compile -e '.[dev]'
+	# the CPU build of torch first, so nothing pulls a multi-GB CUDA build
+	$(BIN)/python -m pip install -q '$(TORCH)' $(if $(TORCH_INDEX),--index-url '$(TORCH_INDEX)')
+	$(BIN)/python -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
 # A fresh run folder each time, so no earlier run is ever overwritten.
