@@ -103,6 +103,9 @@ def run_cli(*args: str, timeout: float = 600) -> subprocess.CompletedProcess:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate()
             pytest.fail(f"formation {' '.join(args)} ran past {timeout} s")
+        except BaseException:  # pytest-timeout's, or Ctrl-C: leave no run behind
+            os.killpg(proc.pid, signal.SIGKILL)
+            raise
     return subprocess.CompletedProcess(cmd, proc.returncode, stdout, stderr)
 
 
