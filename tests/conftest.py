@@ -80,12 +80,6 @@ def reference_step(config, positions, obstacles, actions, steps_before: int) -> 
     return RefOutcome(new, moved, collided, kept, reached, rewards, terminated, truncated, success)
 
 
-def pytest_collection_modifyitems(items):
-    """The longest test first: pytest-xdist hands each worker a contiguous half of the tests, and the learning test,
-    where it falls in the middle, ran alone at the end of the suite for minutes."""
-    items.sort(key=lambda item: item.get_closest_marker("longest") is None)
-
-
 @pytest.fixture(scope="session")
 def reference():
     """The spec's rules in plain Python (see ``reference_step``)."""

@@ -22,7 +22,6 @@ def test_a_random_policy_almost_never_succeeds_on_the_small_board():
     assert summary["success"] < 0.05, summary["success"]
 
 
-@pytest.mark.longest
 def test_the_default_recipe_learns_the_small_board(tmp_path, cli):
     """Under 2 min alone on 2 cores. Measured 89.0% and 91.0% at 8k env steps (seeds 0, 1; docs/lab/TRAINING.md)."""
     out = tmp_path / "small"
