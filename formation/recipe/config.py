@@ -14,6 +14,7 @@
 from __future__ import annotations
 
 import ast
+import copy
 import dataclasses
 import inspect
 import json
@@ -86,6 +87,11 @@ class TrainSettings:
     exploration: str = "joint"
     shaping: float = 1.0  # weight of potential-based shaping; 0 = the paper's reward alone
     potential: str = "distance"  # none | distance (see formation.recipe.shaping)
+    # the training reward of a step that keeps the formation, in place of the game's (the paper's +1); null: the
+    # game's. The game's own reward still scores every episode and evaluation
+    reward_formation_kept: float | None = None
+    # the followers' training reward also gets the game's reach reward (the paper gives it to the leader alone)
+    team_reward: bool = False
     planner_slack: int = 6  # the teacher: paths longer than the lower bound + slack count as lost
     steps_per_sample: int = 8  # steps of all of an actor's games per push to the replay
     demonstrations: float = 0.5  # fraction of games played by the clairvoyant planner (the teacher)
@@ -157,6 +163,8 @@ class TrainSettings:
         _number(self, "shaping", 0.0, math.inf)
         _number(self, "demonstrations", 0.0, 1.0)
         _number(self, "exploring_starts", 0.0, 1.0)
+        if self.reward_formation_kept is not None:
+            _number(self, "reward_formation_kept", -math.inf, math.inf)
         _number(self, "margin", 0.0, math.inf)
         _number(self, "margin_gap", 0.0, math.inf)
         _number(self, "safety_weight", 0.0, math.inf)
@@ -172,7 +180,7 @@ class TrainSettings:
         if self.safety_encoder is True and not self.safety_horizon:
             raise ConfigError("train.safety_encoder: true needs train.safety_horizon other than 0; allowed: false")
         _integer(self, "seed", 0)
-        for name in ("prioritized", "followers_share_policy", "dagger", "robust_first_step", "screen_cells",
+        for name in ("prioritized", "followers_share_policy", "dagger", "team_reward", "robust_first_step", "screen_cells",
                      "obstacle_forecast", "follower_answers_leader", "answer_every_leader_move", "safety_encoder"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
@@ -362,11 +370,25 @@ class RunConfig:
     def load_saved(cls, path: str | Path, overrides: dict[str, Any] | None = None) -> RunConfig:
         """A run folder's ``config.yaml``: as ``load``, but a key the config gained after the run was
         written takes the value that run trained with (``LATER_KEYS``), not today's default."""
-        values = _read_yaml(path)
+        return cls.from_saved(_read_yaml(path), overrides)
+
+    @classmethod
+    def from_saved(cls, values: dict[str, Any], overrides: dict[str, Any] | None = None) -> RunConfig:
+        """``load_saved`` of a config's values (a policy card's ``training.config``)."""
+        values = copy.deepcopy(values)
         for (section, key), value in LATER_KEYS.items():
             if isinstance(values.get(section), dict) and key not in values[section]:
                 values[section][key] = value
         return cls.from_dict(apply_overrides(values, overrides or {}))
+
+    @property
+    def planner_options(self) -> list[str]:
+        """The options with which the clairvoyant planner plays or labels while this run trains (the teacher's
+        games and labels, the safety heads' labels, the refit phase); none: it learns from the reward alone."""
+        t = self.train
+        used = {"train.dagger": t.dagger, "train.demonstrations": t.demonstrations > 0,
+                "train.safety_horizon": t.safety_head, "refit.rounds": self.refit.rounds > 0}
+        return [name for name, on in used.items() if on]
 
     def to_dict(self) -> dict[str, Any]:
         out = {"game": self.game.to_dict()}

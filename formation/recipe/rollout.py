@@ -42,7 +42,7 @@ def exploring_start(scenario: Scenario, config: GameConfig, rng: np.random.Gener
 class GameRollout:
     def __init__(self, config: GameConfig, batch_size: int, seed: int | None = None, stream_offset: int = 0,
                  potential=None, shaping: float = 0.0, gamma: float = 0.99, exploring_starts: float = 0.0,
-                 screen_cells: bool = False):
+                 screen_cells: bool = False, reward_formation_kept: float | None = None, team_reward: bool = False):
         """``potential`` (a ``formation.recipe.shaping.Potential``), if given, adds the shaping term
         ``shaping * (gamma * Phi(s') - Phi(s))`` to every stored reward (never to the episode
         statistics, which report the game's own reward). ``exploring_starts``: the fraction of episodes
@@ -53,6 +53,7 @@ class GameRollout:
             raise ValueError(f"screen_cells: only screens are read per cell, not {config.obs_type} observations")
         self.config = config
         self.potential, self.shaping, self.gamma = potential, shaping, gamma
+        self.reward_formation_kept, self.team_reward = reward_formation_kept, team_reward
         self.game = BatchedGame(config, batch_size=batch_size, seed=seed)
         self.game.reset()
         self.exploring_starts = exploring_starts
@@ -102,6 +103,11 @@ class GameRollout:
         g.step(actions)
         done = g.done.copy()
         rewards = g.rewards.copy()
+        if self.reward_formation_kept is not None:
+            rewards += (np.float32(self.reward_formation_kept - self.config.reward_formation_kept)
+                        * g.formation_kept[:, None])
+        if self.team_reward:
+            rewards[:, 1:] += np.float32(self.config.reward_reach) * g.reached[:, None]
         if self.potential is not None:
             phi_next = self.potential(g)
             rewards += self.shaping * (self.gamma * phi_next - self._phi)

@@ -76,7 +76,8 @@ class RolloutActor(EnvRunner, Checkpointable):
         potential = Potential(t.potential, run.game) if t.shaping > 0 and t.potential != "none" else None
         self.rollout = GameRollout(run.game, games, seed=t.seed * 10_007 + index, stream_offset=index * games,
                                    potential=potential, shaping=t.shaping, gamma=t.gamma,
-                                   exploring_starts=t.exploring_starts, screen_cells=reads_cells(run))
+                                   exploring_starts=t.exploring_starts, screen_cells=reads_cells(run),
+                                   reward_formation_kept=t.reward_formation_kept, team_reward=t.team_reward)
         self._rng = np.random.default_rng([t.seed, index])  # exploration
         self._demo_games = int(round(run.train.demonstrations * games))
         self._plans: dict[int, list] = {}

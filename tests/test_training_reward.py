@@ -1,0 +1,48 @@
+"""Training rewards beside the game's (``train.reward_formation_kept``, ``train.team_reward``): the stored
+rewards change, the game's own reward (episode statistics, evaluation) does not."""
+
+import numpy as np
+import pytest
+
+from formation.config import ConfigError, GameConfig
+from formation.recipe.config import RunConfig
+from formation.recipe.rollout import GameRollout
+
+
+def play(rollout: GameRollout, steps: int, seed: int = 0) -> tuple[np.ndarray, list]:
+    """Stored rewards of every step's records (not the truncation records) and the episode statistics, for joint moves that take the team towards the destination together, or stay
+    (so that some games reach, some collide and some break)."""
+    rng = np.random.default_rng(seed)
+    rewards = []
+    destination_column = rollout.config.destination[1]
+    for _ in range(steps):
+        towards = 1 + (rollout.game.positions[:, 0, 1] < destination_column)  # FL or FR
+        towards[rollout.game.positions[:, 0, 1] == destination_column] = 0  # F
+        move = np.where(rng.random(rollout.batch_size) < 0.3, 3, towards)
+        moves = np.repeat(move[:, None], rollout.n_agents, axis=1)
+        strays = rng.random(rollout.batch_size) < 0.2  # the follower's own random move: it may break the formation
+        moves[strays, 1] = rng.integers(0, 4, strays.sum())
+        chunk = rollout.step(moves)
+        rewards.append(chunk.rewards[: rollout.batch_size])
+    return np.concatenate(rewards), rollout.pop_episodes()
+
+
+def test_the_kept_reward_and_the_team_reward_change_the_stored_rewards_and_not_the_games():
+    config = GameConfig(setting=None, height=9, width=9, n_obstacles=1, obs_type="grid", frame_stack=2)
+    paper, paper_episodes = play(GameRollout(config, 32, seed=3), 120)
+    trained, episodes = play(GameRollout(config, 32, seed=3, reward_formation_kept=-0.5, team_reward=True), 120)
+    # the game's reward (GAME.md): the follower's is >= 0 where the formation held, the leader's 50 more on reach
+    kept, reached = paper[:, 1] >= 0, paper[:, 0] >= 40
+    assert reached.sum() > 10 and kept.sum() > 100 and (~kept).sum() > 10
+    # the leader: the kept step's +1 became -0.5; the follower also gets the leader's reach reward
+    assert np.allclose(trained[:, 0] - paper[:, 0], -1.5 * kept)
+    assert np.allclose(trained[:, 1] - paper[:, 1], -1.5 * kept + 50.0 * reached)
+    # the episode statistics keep the game's own reward
+    assert [e["returns"] for e in episodes] == [e["returns"] for e in paper_episodes]
+
+
+@pytest.mark.parametrize("key, value, allowed", [("reward_formation_kept", "x", "a number"),
+                                                 ("team_reward", 1, "true, false")])
+def test_a_bad_training_reward_is_refused_in_one_line(key, value, allowed):
+    with pytest.raises(ConfigError, match=rf"^train\.{key}: .* is not allowed; allowed: {allowed}"):
+        RunConfig.from_dict({"train": {key: value}})
