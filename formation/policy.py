@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from formation.config import ConfigError, GameConfig
-from formation.recipe.config import VETO_FALLBACKS
+from formation.recipe.config import VETO_FALLBACKS, RunConfig
 from formation.recipe.qnet import N_ACTIONS, DuelingQNetwork, NetworkSpec, outputs_of, team_q_values
 from formation.shield import Shield, shielded_moves
 
@@ -440,7 +440,17 @@ def training_line(training: dict | None) -> str | None:
     line += f" on {_hardware_words(training.get('hardware'))}"
     commit = str(training.get("commit") or "unknown")
     sha, dirty, _ = commit.partition("-dirty")
-    return line + f"; commit {sha[:12] if sha != 'unknown' else sha}{dirty}"
+    return line + f"; commit {sha[:12] if sha != 'unknown' else sha}{dirty}" + _teacher_words(training.get("config"))
+
+
+def _teacher_words(config: Any) -> str:
+    """What the training line says of the planner's part in training (``RunConfig.planner_options``); nothing
+    where the card's run config does not load."""
+    try:
+        used = RunConfig.from_saved(config).planner_options
+    except (ConfigError, TypeError, AttributeError):
+        return ""
+    return f"; the planner's labels ({', '.join(used)})" if used else "; from the reward alone, no planner"
 
 
 def _hardware_words(hw: Any) -> str:

@@ -53,7 +53,8 @@ def test_evaluate_says_in_one_line_how_the_policy_was_trained(team, capsys):
     assert main(["evaluate", str(team), "--episodes", "2", "--workers", "1"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert re.fullmatch(r"trained: \d{1,3}(,\d{3})* env steps in \d+\.\d (min|h) on .+ \(\d+ CPUs\), "
-                        r"(no GPU|.+ x\d+), 1 Ray node; commit ([0-9a-f]{12}(-dirty)?|unknown)", lines[1]), lines[1]
+                        r"(no GPU|.+ x\d+), 1 Ray node; commit ([0-9a-f]{12}(-dirty)?|unknown); "
+                        r"the planner's labels \(train\.dagger, train\.demonstrations\)", lines[1]), lines[1]
 
 
 def test_old_cards_load_without_a_training_section_and_evaluate_as_before(capsys):
@@ -88,7 +89,10 @@ def test_a_run_from_before_the_training_record_still_says_what_it_knows(smoke_ru
     assert training["learner_updates"] > 0
     assert (training["wall_seconds"], training["hardware"], training["commit"]) == (None, None, "unknown")
     assert training_line(training) == (f"trained: {result['env_steps']:,} env steps in unrecorded time on "
-                                       "unrecorded hardware; commit unknown")
+                                       "unrecorded hardware; commit unknown; the planner's labels (train.dagger, "
+                                       "train.demonstrations)")
+    reward_only = yaml.safe_load(Path("configs/reward_only/setting1.yaml").read_text())
+    assert training_line({**training, "config": reward_only}).endswith("; from the reward alone, no planner")
 
 
 def test_a_result_older_than_the_checkpoint_is_not_its_report(smoke_run, tmp_path):

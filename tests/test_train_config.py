@@ -132,10 +132,24 @@ def test_missing_file_and_bad_yaml(tmp_path):
 def test_every_shipped_config_is_valid():
     from pathlib import Path
 
-    configs = sorted(Path("configs").glob("*.yaml"))
+    configs = sorted(Path("configs").glob("**/*.yaml"))
     assert {"paper.yaml", "smoke.yaml", "small.yaml"} <= {p.name for p in configs}
     for path in configs:
         RunConfig.load(path)
+
+
+def test_the_reward_only_configs_train_without_the_planner_and_the_settings_with_it():
+    from pathlib import Path
+
+    reward_only = sorted(Path("configs/reward_only").glob("*.yaml"))
+    assert reward_only
+    for path in reward_only:
+        run = RunConfig.load(path)
+        assert run.planner_options == [], path
+        assert run.game.obs_type == "pixels" and run.game.frame_stack == 4  # from pixels, as the paper
+    assert RunConfig.load("configs/setting2.yaml").planner_options == [
+        "train.dagger", "train.demonstrations", "train.safety_horizon", "refit.rounds"]
+    assert RunConfig.load("configs/paper.yaml").planner_options == []
 
 
 def test_paper_config_is_the_papers_table_2():
