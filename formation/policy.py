@@ -254,7 +254,6 @@ def load(path: str | Path) -> Policy:
 
 # ---------------------------------------------------------------------- run folders
 def _load_run(run_dir: Path) -> Policy:
-    from formation.recipe.config import RunConfig
     from formation.recipe.team import module_of_agent, network_specs
 
     try:
