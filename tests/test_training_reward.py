@@ -10,8 +10,9 @@ from formation.recipe.rollout import GameRollout
 
 
 def play(rollout: GameRollout, steps: int, seed: int = 0) -> tuple[np.ndarray, list]:
-    """Stored rewards of every step's records (not the truncation records) and the episode statistics, for joint moves that take the team towards the destination together, or stay
-    (so that some games reach, some collide and some break)."""
+    """Stored rewards of every step's records (not the truncation records) and the episode statistics, for
+    joint moves that take the team towards the destination together, or stay, and now and then a random move
+    of the follower's own (so that some games reach, some collide and some break)."""
     rng = np.random.default_rng(seed)
     rewards = []
     destination_column = rollout.config.destination[1]

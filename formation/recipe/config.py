@@ -180,8 +180,9 @@ class TrainSettings:
         if self.safety_encoder is True and not self.safety_horizon:
             raise ConfigError("train.safety_encoder: true needs train.safety_horizon other than 0; allowed: false")
         _integer(self, "seed", 0)
-        for name in ("prioritized", "followers_share_policy", "dagger", "team_reward", "robust_first_step", "screen_cells",
-                     "obstacle_forecast", "follower_answers_leader", "answer_every_leader_move", "safety_encoder"):
+        for name in ("prioritized", "followers_share_policy", "dagger", "team_reward", "robust_first_step",
+                     "screen_cells", "obstacle_forecast", "follower_answers_leader", "answer_every_leader_move",
+                     "safety_encoder"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:
