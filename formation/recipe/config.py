@@ -195,10 +195,12 @@ class TrainSettings:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
         if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0
                                      or self.prioritized or self.dagger or self.follower_answers_leader
-                                     or self.safety_horizon):
+                                     or self.safety_horizon or self.reward_formation_kept is not None
+                                     or self.team_reward):
             raise ConfigError("train.path: stock runs RLlib's DQN on the paper's reward alone; "
                               "set train.shaping: 0, demonstrations: 0, margin: 0, prioritized: false, dagger: false, "
-                              "follower_answers_leader: false, safety_horizon: 0")
+                              "follower_answers_leader: false, safety_horizon: 0, reward_formation_kept: null, "
+                              "team_reward: false")
         if self.leader_window is not None and (
                 not isinstance(self.leader_window, tuple) or len(self.leader_window) != 3
                 or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in self.leader_window)):

@@ -45,7 +45,9 @@ class GameRollout:
                  screen_cells: bool = False, reward_formation_kept: float | None = None, team_reward: bool = False):
         """``potential`` (a ``formation.recipe.shaping.Potential``), if given, adds the shaping term
         ``shaping * (gamma * Phi(s') - Phi(s))`` to every stored reward (never to the episode
-        statistics, which report the game's own reward). ``exploring_starts``: the fraction of episodes
+        statistics, which report the game's own reward); so do ``reward_formation_kept`` (the reward of a step
+        in formation instead of the game's) and ``team_reward`` (the followers also get the reach reward).
+        ``exploring_starts``: the fraction of episodes
         that start from an ``exploring_start`` instead of the spec's places. ``screen_cells`` (screens
         only): the records hold one pixel per cell of each screen, the pixels ``ScreenCells`` reads
         (``formation.game.render.cell_pixels``), instead of the whole screen."""
