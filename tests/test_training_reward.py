@@ -47,3 +47,12 @@ def test_the_kept_reward_and_the_team_reward_change_the_stored_rewards_and_not_t
 def test_a_bad_training_reward_is_refused_in_one_line(key, value, allowed):
     with pytest.raises(ConfigError, match=rf"^train\.{key}: .* is not allowed; allowed: {allowed}"):
         RunConfig.from_dict({"train": {key: value}})
+
+
+@pytest.mark.parametrize("key, value", [("reward_formation_kept", 0.0), ("team_reward", True)])
+def test_rllibs_stock_dqn_refuses_a_training_reward_it_would_not_apply(key, value):
+    stock = {"path": "stock", "shaping": 0, "demonstrations": 0, "margin": 0, "prioritized": False, "dagger": False,
+             "follower_answers_leader": False}
+    RunConfig.from_dict({"train": stock})
+    with pytest.raises(ConfigError, match=rf"^train\.path: stock .*{key}: "):
+        RunConfig.from_dict({"train": {**stock, key: value}})
