@@ -42,7 +42,7 @@ def test_the_kept_reward_and_the_team_reward_change_the_stored_rewards_and_not_t
     assert [e["returns"] for e in episodes] == [e["returns"] for e in paper_episodes]
 
 
-@pytest.mark.parametrize("key, value, allowed", [("reward_formation_kept", "x", "a number"),
+@pytest.mark.parametrize("key, value, allowed", [("reward_formation_kept", "x", "null or a number"),
                                                  ("team_reward", 1, "true, false")])
 def test_a_bad_training_reward_is_refused_in_one_line(key, value, allowed):
     with pytest.raises(ConfigError, match=rf"^train\.{key}: .* is not allowed; allowed: {allowed}"):

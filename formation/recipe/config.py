@@ -163,8 +163,10 @@ class TrainSettings:
         _number(self, "shaping", 0.0, math.inf)
         _number(self, "demonstrations", 0.0, 1.0)
         _number(self, "exploring_starts", 0.0, 1.0)
-        if self.reward_formation_kept is not None:
-            _number(self, "reward_formation_kept", -math.inf, math.inf)
+        kept = self.reward_formation_kept
+        number = isinstance(kept, int | float) and not isinstance(kept, bool) and math.isfinite(kept)
+        if kept is not None and not number:
+            raise ConfigError(f"train.reward_formation_kept: {kept!r} is not allowed; allowed: null or a number")
         _number(self, "margin", 0.0, math.inf)
         _number(self, "margin_gap", 0.0, math.inf)
         _number(self, "safety_weight", 0.0, math.inf)
