@@ -407,7 +407,9 @@ def _load_export(folder: Path) -> Policy:
 def how_trained(policy: Policy) -> dict | None:
     """What an evaluation report keeps of how ``policy`` was made (None for a card without a training section):
     the run's ``train.seed``, its env steps, the wall seconds of training and of every refit after it (None
-    where none was), and the hardware of training."""
+    where none was), the hardware of training, and the options with which the planner took part (the run
+    config's ``RunConfig.planner_options``, and ``refit.rounds`` after any refit; empty: from the reward alone;
+    None where the card's run config does not load)."""
     training = policy.training
     if not training:
         return None
@@ -416,9 +418,12 @@ def how_trained(policy: Policy) -> dict | None:
         refit_seconds = (refit_seconds or 0.0) + refit["seconds"]
         refit = refit.get("earlier")
     train = (training.get("config") or {}).get("train") or {}
+    planner_options = _planner_options(training.get("config"))
+    if planner_options is not None and policy.refit_report and "refit.rounds" not in planner_options:
+        planner_options.append("refit.rounds")  # a `formation refit` after training: the planner labelled it
     return {"seed": train.get("seed"), "env_steps": training.get("env_steps"),
             "wall_seconds": training.get("wall_seconds"), "refit_seconds": refit_seconds,
-            "hardware": training.get("hardware")}
+            "hardware": training.get("hardware"), "planner_options": planner_options}
 
 
 def training_line(training: dict | None) -> str | None:
@@ -442,12 +447,19 @@ def training_line(training: dict | None) -> str | None:
     return line + f"; commit {sha[:12] if sha != 'unknown' else sha}{dirty}" + _teacher_words(training.get("config"))
 
 
-def _teacher_words(config: Any) -> str:
-    """What the training line says of the planner's part in training (``RunConfig.planner_options``); nothing
-    where the card's run config does not load."""
+def _planner_options(config: Any) -> list[str] | None:
+    """``RunConfig.planner_options`` of a card's run config; None where it does not load."""
     try:
-        used = RunConfig.from_saved(config).planner_options
+        return RunConfig.from_saved(config).planner_options
     except (ConfigError, TypeError, AttributeError):
+        return None
+
+
+def _teacher_words(config: Any) -> str:
+    """What the training line says of the planner's part in training; nothing where the card's run config does
+    not load."""
+    used = _planner_options(config)
+    if used is None:
         return ""
     return f"; the planner's labels ({', '.join(used)})" if used else "; from the reward alone, no planner"
 

@@ -14,6 +14,7 @@ import yaml
 
 from formation.cli import main
 from formation.policy import PolicyError, load, training_line
+from formation.recipe.config import RunConfig
 from formation.train import TRAINING, training_record
 
 REPO = Path(__file__).resolve().parent.parent
@@ -136,3 +137,8 @@ def test_a_refit_keeps_the_training_section_and_adds_its_own(smoke_run, tmp_path
     refitted.refit_report = {"seconds": 2.0, "earlier": refitted.refit_report}
     trained = how_trained(refitted)
     assert trained["refit_seconds"] == 3.0 and trained["wall_seconds"] == card["training"]["wall_seconds"]
+    # the refit's labels come from the planner, whether or not training's own config had a refit phase
+    before = RunConfig.from_saved(card["training"]["config"]).planner_options
+    assert "refit.rounds" not in before and trained["planner_options"] == [*before, "refit.rounds"]
+    refitted.training = {**refitted.training, "config": {"train": {"gamma": "high"}}}
+    assert how_trained(refitted)["planner_options"] is None  # a card whose run config does not load

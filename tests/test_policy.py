@@ -46,6 +46,7 @@ def test_evaluate_is_reproducible_and_matches_trainings_final_evaluation(run_dir
     trained = a["trained"]
     assert (trained["seed"], trained["env_steps"], trained["refit_seconds"]) == (run.train.seed, a["env_steps"], None)
     assert trained["wall_seconds"] > 0 and trained["hardware"]["cpus"] >= 1
+    assert trained["planner_options"] == run.planner_options
     # the same episodes as training's final greedy evaluation: every number of its summary agrees
     assert a["success"] == result["greedy"]["success"]
     for key, value in result["greedy"].items():
