@@ -39,17 +39,19 @@ def last_row(out) -> dict:
 
 
 def test_killed_rollout_and_replay_actors_are_restarted_the_replay_refilled_and_the_run_finishes(cluster, tmp_path):
-    """One run, two crashes: a rollout actor at 800 env steps, then the replay actor once learning is under way."""
+    """One run, two crashes: a rollout actor at 400 env steps, then the replay actor once learning is under way.
+    Learning starts at 200 records (smoke: 500), so that the refill and the learning after it fit in 2200 env steps."""
     out = tmp_path / "run"
     seen: dict = {}
+    learning_starts = 200
 
     def kill_an_actor_then_the_replay(algo, row):
-        if "actor_killed" not in seen and row["env_steps"] >= 800:
+        if "actor_killed" not in seen and row["env_steps"] >= 400:
             index, (pid, actor_id) = sorted(rollout_actors(algo).items())[0]
             seen["actor_killed"] = (index, pid, actor_id)
             os.kill(pid, signal.SIGKILL)
         elif "actor_killed" in seen and "replay_killed" not in seen and row["learner_updates"] > 0 \
-                and row["env_steps"] >= 1600:
+                and row["env_steps"] >= 1000:
             seen["replay_killed"] = replay_process(algo)
             seen["updates_at_kill"] = algo.counters["updates"]
             os.kill(seen["replay_killed"][0], signal.SIGKILL)
@@ -58,10 +60,11 @@ def test_killed_rollout_and_replay_actors_are_restarted_the_replay_refilled_and_
         seen["replay"] = algo.replay_stats()[0]
         seen["process"] = replay_process(algo)
 
-    summary = train(SMOKE, str(out), overrides={"train.total_env_steps": 3500, "train.prioritized": True},
+    summary = train(SMOKE, str(out), overrides={"train.total_env_steps": 2200, "train.prioritized": True,
+                                                "train.learning_starts": learning_starts},
                     quiet=True, on_iteration=kill_an_actor_then_the_replay)
     row = last_row(out)
-    assert row["env_steps"] >= 3500 and summary["episodes"] == 50
+    assert row["env_steps"] >= 2200 and summary["episodes"] == 50
     # the rollout actor: Ray restarted the same actor in a new process, and both actors sample again
     index, pid, actor_id = seen["actor_killed"]
     assert row["faults/rollout_actor_restarts"] >= 1
@@ -75,7 +78,7 @@ def test_killed_rollout_and_replay_actors_are_restarted_the_replay_refilled_and_
     assert row["learner_updates"] > seen["updates_at_kill"] + 20
     assert seen["process"][1] == seen["replay_killed"][1] and seen["process"][0] != seen["replay_killed"][0]
     assert seen["replay"]["replay_env_steps"] < row["env_steps"]  # the new replay holds only what came after
-    assert seen["replay"]["replay_records"] >= 500  # refilled to learning_starts at least
+    assert seen["replay"]["replay_records"] >= learning_starts  # refilled to learning_starts at least
 
 
 def test_a_killed_learner_stops_the_run_in_one_line_and_keeps_the_last_checkpoint(cluster, tmp_path):
@@ -91,8 +94,9 @@ def test_a_killed_learner_stops_the_run_in_one_line_and_keeps_the_last_checkpoin
             os.kill(pid, signal.SIGKILL)
 
     with pytest.raises(RunFailed) as err:
-        train(SMOKE, str(out), overrides={"train.total_env_steps": 100_000}, quiet=True,
-              on_iteration=kill_the_learner)
+        # the learner is the point: one rollout actor, and learning from 64 records on
+        train(SMOKE, str(out), overrides={"train.total_env_steps": 100_000, "resources.num_rollout_actors": 1,
+                                          "train.learning_starts": 64}, quiet=True, on_iteration=kill_the_learner)
     message = str(err.value)
     assert message.startswith("the learner died (") and "\n" not in message
     assert message.endswith(f"the last checkpoint, {out / 'checkpoint'}, is kept: continue with --resume")
@@ -103,6 +107,12 @@ def rows_of(out) -> list[dict]:
     """The metrics rows written whole so far (a running driver may be midway through the last line)."""
     text = (out / "metrics.jsonl").read_text()
     return [json.loads(line) for line in text[: text.rfind("\n") + 1].splitlines()]
+
+
+def saved_env_steps(out) -> int:
+    """The env steps of the last checkpoint (training.json is written whole with each), 0 before the first."""
+    record = out / "training.json"
+    return json.loads(record.read_text())["env_steps"] if record.is_file() else 0
 
 
 def wait_for(proc: subprocess.Popen, ready: Callable[[], bool], what: str) -> None:
@@ -123,8 +133,9 @@ def test_a_killed_driver_leaves_a_checkpoint_that_resume_continues_and_sigterm_s
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
                             start_new_session=True)
     try:
-        wait_for(proc, (out / "checkpoint" / "algorithm_state.pkl").is_file, "training did not start")
-        time.sleep(3)
+        # killed once a checkpoint holds env steps (not after a fixed sleep): the driver is training by then
+        wait_for(proc, lambda: (out / "checkpoint" / "algorithm_state.pkl").is_file() and saved_env_steps(out) > 0,
+                 "training did not start")
     finally:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait(timeout=60)
