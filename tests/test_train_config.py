@@ -152,6 +152,18 @@ def test_the_reward_only_configs_train_without_the_planner_and_the_settings_with
     assert RunConfig.load("configs/paper.yaml").planner_options == []
 
 
+@pytest.mark.parametrize("folder", ["configs", "configs/reward_only"])
+def test_the_four_settings_configs_share_one_recipe_and_differ_in_the_setting_and_the_budget(folder):
+    def recipe(k: int) -> dict:
+        values = yaml.safe_load(open(f"{folder}/setting{k}.yaml"))
+        assert values["game"]["setting"] == k
+        for section, key in (("game", "setting"), ("train", "total_env_steps")):
+            del values[section][key]
+        return values
+
+    assert all(recipe(k) == recipe(1) for k in (2, 3, 4))
+
+
 def test_paper_config_is_the_papers_table_2():
     paper = RunConfig.load("configs/paper.yaml")
     t = paper.train
