@@ -7,7 +7,14 @@ Each report is `formation evaluate <policy> --episodes 1000 --seed 2000000 --jso
 `settingK_seedS.json` of the run folder of `formation train configs/settingK.yaml --set train.seed=S`,
 `settingK.json` of the shipped `policies/settingK`, and the grid and paper's-recipe rows. A report records how
 its team was trained (``trained``: env steps, wall seconds of training and refit, hardware); for the rows
-older than that, docs/results/training_hours.json has the hours. Prints the tables as Markdown.
+older than that, docs/results/training_hours.json has the hours.
+
+Learning from the reward alone (docs/results/reward_only/): `settingK.json` is the test report of the shipped
+`policies/reward_only/settingK`; `ingredients/*.json` are validation reports (`--seed 3000000`) of the runs
+that measured what each ingredient of the reward-only recipe gained (INGREDIENTS names them). Every
+reward-only report must record a training without the planner.
+
+Prints the tables as Markdown.
 """
 
 from __future__ import annotations
@@ -95,6 +102,62 @@ def order(stem: str) -> tuple[int, str]:
     return ({"": 0, "grid": 1, "paper_recipe": 2}[stem.partition("_")[2]], stem)
 
 
+# the reward-only ingredient runs, in the table's order: what each trained with (docs/RESULTS.md has the commands)
+INGREDIENTS = {
+    "grid_paper_reward_seed0": "setting 1, grid: the paper's training reward (+1 a step in formation)",
+    "grid_kept0_seed0": "setting 1, grid: kept 0",
+    "grid_kept0_seed1": "setting 1, grid: kept 0",
+    "grid_kept0_team_seed0": "setting 1, grid: kept 0, team reward",
+    "grid_kept0_team_seed1": "setting 1, grid: kept 0, team reward",
+    "grid_kept0_team_noshaping_seed0": "setting 1, grid: kept 0, team reward, no shaping",
+    "pixels_setting1_seed0": "setting 1, pixels: kept 0, team reward (`configs/reward_only/setting1.yaml`)",
+}
+
+
+def reward_only(report: dict, name: str) -> dict:
+    """The report's training record, once checked to be from the reward alone."""
+    trained = report.get("trained") or {}
+    if trained.get("planner_options") != []:
+        raise SystemExit(f"{name}: its team was not trained from the reward alone "
+                         f"(planner options {trained.get('planner_options')!r})")
+    return trained
+
+
+def steps_cell(r: dict) -> str:
+    """Steps of successes against the planner's on the same scenarios, and how much longer in percent."""
+    if r["steps_success_mean"] is None:
+        return "none"
+    ours, planner = r["steps_success_mean"], r["planner"]["planner_steps_on_successes_mean"]
+    return f"{ours:.2f} / {planner:.2f} (+{100 * (ours / planner - 1):.1f}%)"
+
+
+def reward_only_tables() -> None:
+    folder = RESULTS / "reward_only"
+    print("| policy | env steps | training | success (95% CI) | leader collision | follower collision | "
+          "formation break | time-out | steps: ours / planner |\n" + "| --- " * 9 + "|")
+    for path in sorted(folder.glob("setting*.json")):
+        r = json.loads(path.read_text())
+        trained = reward_only(r, str(path))
+        low, high = r["success_ci95"]
+        cells = [f"`policies/reward_only/{path.stem}`", f"{r['env_steps']:,}",
+                 f"{trained['wall_seconds'] / 3600:.2f} h", f"**{pct(r['success'])}** ({pct(low)[:-1]}-{pct(high)})",
+                 pct(r["leader_collision"]),
+                 pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]), steps_cell(r)]
+        print("| " + " | ".join(cells) + " |")
+    print("\n| training | seed | env steps | validation success (95% CI) | time-out | steps: ours / planner |\n"
+          + "| --- " * 6 + "|")
+    for stem, what in INGREDIENTS.items():
+        path = folder / "ingredients" / f"{stem}.json"
+        if not path.exists():
+            continue
+        r = json.loads(path.read_text())
+        trained = reward_only(r, str(path))
+        low, high = r["success_ci95"]
+        cells = [what, str(trained["seed"]), f"{r['env_steps']:,}",
+                 f"{pct(r['success'])} ({pct(low)[:-1]}-{pct(high)})", pct(r["timeout"]), steps_cell(r)]
+        print("| " + " | ".join(cells) + " |")
+
+
 def main() -> None:
     parser(__doc__).parse_args()
     hours = json.loads((RESULTS / "training_hours.json").read_text())
@@ -117,6 +180,8 @@ def main() -> None:
     for stem in stems:
         if not stem.endswith("_grid"):
             print(returns_row(stem, reports[stem]))
+    print()
+    reward_only_tables()
 
 
 if __name__ == "__main__":
