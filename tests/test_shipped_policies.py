@@ -7,21 +7,29 @@ from pathlib import Path
 import pytest
 
 from formation.evaluate import play_greedy
-from formation.policy import load
+from formation.policy import load, training_line
 
 REPO = Path(__file__).resolve().parent.parent
 SEED = 2_000_000  # docs/RESULTS.md evaluates from here: scenarios no training run used
 EPISODES = 100
 
 
-@pytest.mark.parametrize("setting", [1, 2, 3, 4])
-def test_a_shipped_policy_plays_its_setting_from_pixels_as_reported(setting):
-    folder = REPO / "policies" / f"setting{setting}"
+# the teacher's policies, and those learnt from the reward alone that have shipped so far
+SHIPPED = [("", k) for k in (1, 2, 3, 4)] + [("reward_only", int(p.name.removeprefix("setting")))
+                                            for p in sorted((REPO / "policies" / "reward_only").glob("setting*"))]
+
+
+@pytest.mark.parametrize(("family", "setting"), SHIPPED)
+def test_a_shipped_policy_plays_its_setting_from_pixels_as_reported(family, setting):
+    folder = REPO / "policies" / family / f"setting{setting}"
     policy = load(folder)
     assert policy.game.setting == setting
     assert policy.game.obs_type == "pixels" and policy.game.frame_stack == 4
     assert sum(f.stat().st_size for f in folder.iterdir()) < 6_000_000  # a few MB (settings 2-4 with safety heads: 5.0)
-    reported = json.loads((REPO / "docs" / "results" / f"setting{setting}.json").read_text())
+    reported = json.loads((REPO / "docs" / "results" / family / f"setting{setting}.json").read_text())
+    if family == "reward_only":  # its card's run config: no planner took part in training
+        assert reported["trained"]["planner_options"] == []
+        assert training_line(policy.training).endswith("from the reward alone, no planner")
     assert reported["episodes"] == 1000 and reported["env_steps"] == policy.env_steps
     summary = play_greedy(policy.game, policy.act_batch, EPISODES, SEED)["summary"]
     # the first 100 of the 1000 reported scenarios: far above chance (random play: 0%), and
