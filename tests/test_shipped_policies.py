@@ -19,7 +19,7 @@ SHIPPED = [("", k) for k in (1, 2, 3, 4)] + [("reward_only", int(p.name.removepr
                                             for p in sorted((REPO / "policies" / "reward_only").glob("setting*"))]
 
 
-@pytest.mark.parametrize(("family", "setting"), SHIPPED)
+@pytest.mark.parametrize(("family", "setting"), SHIPPED, ids=[f"{f or 'teacher'}-setting{k}" for f, k in SHIPPED])
 def test_a_shipped_policy_plays_its_setting_from_pixels_as_reported(family, setting):
     folder = REPO / "policies" / family / f"setting{setting}"
     policy = load(folder)
