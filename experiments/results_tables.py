@@ -141,8 +141,8 @@ def reward_only_tables() -> None:
         low, high = r["success_ci95"]
         cells = [f"`policies/reward_only/{path.stem}`", f"{r['env_steps']:,}",
                  f"{trained['wall_seconds'] / 3600:.2f} h", f"**{pct(r['success'])}** ({pct(low)[:-1]}-{pct(high)})",
-                 pct(r["leader_collision"]),
-                 pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]), steps_cell(r)]
+                 pct(r["leader_collision"]), pct(r["follower_collision"]), pct(r["formation_broken"]),
+                 pct(r["timeout"]), steps_cell(r)]
         print("| " + " | ".join(cells) + " |")
     print("\n| training | seed | env steps | validation success (95% CI) | time-out | steps: ours / planner |\n"
           + "| --- " * 6 + "|")
