@@ -1,0 +1,44 @@
+"""Where a team's successes lose steps against the planner (docs/RESULTS.md, "What holds settings 3-4 back"):
+the leader's waits, its moves along row 0 (sliding sideways to the destination), and its column offset from
+the destination as it first reaches some rows, over the successes of the first N validation scenarios.
+
+    .venv/bin/python experiments/leader_detours.py POLICY [N]     # POLICY: a run, its checkpoint/, an export
+"""
+
+import sys
+
+import numpy as np
+
+from formation.evaluate import play_greedy
+from formation.policy import load
+
+STAY = 3  # the spec's action S
+VALIDATION_SEED = 3_000_000
+
+
+def main(path: str, n: int = 200) -> None:
+    policy = load(path)
+    seen = []  # (leader's position before the step, its action, live) of every step
+
+    def watch(game, actions, live):
+        seen.append((game.positions[:, 0].copy(), actions[:, 0].copy(), live.copy()))
+
+    played = play_greedy(policy.game, policy.act_batch, n, VALIDATION_SEED, watch=watch)
+    won = np.asarray(played["success"])
+    waits, on_top = np.zeros(n), np.zeros(n)
+    for at, action, live in seen:
+        waits += live & (action == STAY)
+        on_top += live & (action != STAY) & (at[:, 0] == 0)
+    print(f"{won.sum()}/{n} successes in {np.asarray(played['steps'])[won].mean():.2f} steps; per success, the "
+          f"leader waits {waits[won].mean():.2f} times and moves along row 0 {on_top[won].mean():.2f} times")
+    column = policy.game.destination[1]
+    for row in (policy.game.height - 10, policy.game.height // 2, 12, 1):
+        offset = np.full(n, np.nan)
+        for at, _, live in seen:
+            first = live & (at[:, 0] == row) & np.isnan(offset)
+            offset[first] = at[first, 1] - column
+        print(f"row {row}: the leader's mean column offset from the destination {np.nanmean(offset[won]):+.2f}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], *(int(a) for a in sys.argv[2:3]))
