@@ -585,6 +585,8 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         """The rollout actors' finished episodes: RLlib's standard ``env_runners`` keys (an episode's return is its
         agents' summed, as RLlib's multi-agent episodes count it) and the recipe's ``explore`` rates."""
         m, window = self.metrics, self.config.metrics_num_episodes_for_smoothing
+        # Ray 2.60's windowed means are emptied at each iteration's reduce: every mean below is over the episodes
+        # that ended in this iteration (NaN in one that ended none); the windows only cap how many count
         agents, modules = self.run.game.agent_names, module_of_agent(self.run)
         m.log_value((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED), env_steps, reduce="sum")
         m.log_value((ENV_RUNNER_RESULTS, NUM_EPISODES), len(episodes), reduce="sum")
