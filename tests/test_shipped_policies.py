@@ -46,7 +46,9 @@ def test_a_card_that_names_a_removed_option_loads_at_its_neutral_value_and_is_re
     for f in (REPO / "policies" / "setting1").iterdir():
         (folder / f.name).write_bytes(f.read_bytes())
     card = json.loads((folder / "policy.json").read_text())
-    assert {net["row_scan"] for net in card["networks"].values()} == {0}  # as 0.1 wrote every card
+    for net in card["networks"].values():
+        net["row_scan"] = 0  # as 0.1 wrote every card
+    (folder / "policy.json").write_text(json.dumps(card))
     assert load(folder).specs == load(REPO / "policies" / "setting1").specs
     card["networks"]["follower"]["row_scan"] = 8
     (folder / "policy.json").write_text(json.dumps(card))
