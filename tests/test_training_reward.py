@@ -1,5 +1,5 @@
-"""Training rewards beside the game's (``train.reward_formation_kept``, ``train.team_reward``): the stored
-rewards change, the game's own reward (episode statistics, evaluation) does not."""
+"""Training rewards beside the game's (``train.reward_formation_kept``, ``train.team_reward``, ``train.shaping``):
+the stored rewards change, the game's own reward (episode statistics, evaluation) does not."""
 
 import numpy as np
 import pytest
@@ -7,14 +7,16 @@ import pytest
 from formation.config import ConfigError, GameConfig
 from formation.recipe.config import RunConfig
 from formation.recipe.rollout import GameRollout
+from formation.recipe.shaping import Potential
 
 
-def play(rollout: GameRollout, steps: int, seed: int = 0) -> tuple[np.ndarray, list]:
-    """Stored rewards of every step's records (not the truncation records) and the episode statistics, for
+def play(rollout: GameRollout, steps: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray, list]:
+    """Stored rewards of every step's records (not the truncation records), (steps, B, agents); whether each
+    step ended its game (steps, B); and the episode statistics, for
     joint moves that take the team towards the destination together, or stay, and now and then a random move
     of the follower's own (so that some games reach, some collide and some break)."""
     rng = np.random.default_rng(seed)
-    rewards = []
+    rewards, ended = [], []
     destination_column = rollout.config.destination[1]
     for _ in range(steps):
         towards = 1 + (rollout.game.positions[:, 0, 1] < destination_column)  # FL or FR
@@ -25,13 +27,15 @@ def play(rollout: GameRollout, steps: int, seed: int = 0) -> tuple[np.ndarray, l
         moves[strays, 1] = rng.integers(0, 4, strays.sum())
         chunk = rollout.step(moves)
         rewards.append(chunk.rewards[: rollout.batch_size])
-    return np.concatenate(rewards), rollout.pop_episodes()
+        ended.append(chunk.terminated[: rollout.batch_size] | chunk.truncated[: rollout.batch_size])
+    return np.stack(rewards), np.stack(ended), rollout.pop_episodes()
 
 
 def test_the_kept_reward_and_the_team_reward_change_the_stored_rewards_and_not_the_games():
     config = GameConfig(setting=None, height=9, width=9, n_obstacles=1, obs_type="grid", frame_stack=2)
-    paper, paper_episodes = play(GameRollout(config, 32, seed=3), 120)
-    trained, episodes = play(GameRollout(config, 32, seed=3, reward_formation_kept=-0.5, team_reward=True), 120)
+    paper, _, paper_episodes = play(GameRollout(config, 32, seed=3), 120)
+    trained, _, episodes = play(GameRollout(config, 32, seed=3, reward_formation_kept=-0.5, team_reward=True), 120)
+    paper, trained = paper.reshape(-1, paper.shape[-1]), trained.reshape(-1, trained.shape[-1])
     # the game's reward (GAME.md): the follower's is >= 0 where the formation held, the leader's 50 more on reach
     kept, reached = paper[:, 1] >= 0, paper[:, 0] >= 40
     assert reached.sum() > 10 and kept.sum() > 100 and (~kept).sum() > 10
@@ -40,6 +44,31 @@ def test_the_kept_reward_and_the_team_reward_change_the_stored_rewards_and_not_t
     assert np.allclose(trained[:, 1] - paper[:, 1], -1.5 * kept + 50.0 * reached)
     # the episode statistics keep the game's own reward
     assert [e["returns"] for e in episodes] == [e["returns"] for e in paper_episodes]
+
+
+def test_the_shaping_telescopes_to_a_reach_and_charges_the_distance_left_at_a_collision_or_break():
+    """Over an episode the leader's discounted shaping sums to gamma^T Phi(s_T) - Phi(s_0): the start's 8 steps
+    to go (9x9 board) where it reaches, less where a collision or break ends it, as Phi(s_T) is kept there and
+    nothing bootstraps after it (docs/RECIPE.md, "Distance shaping")."""
+    config = GameConfig(setting=None, height=9, width=9, n_obstacles=1, obs_type="grid", frame_stack=2)
+    gamma, games = 0.97, 32
+    paper, ended, _ = play(GameRollout(config, games, seed=3), 150)
+    shaped, _, _ = play(GameRollout(config, games, seed=3, potential=Potential("distance", config), shaping=1.0,
+                                    gamma=gamma), 150)
+    assert np.allclose(shaped[..., 1], paper[..., 1])  # followers' potential is 0
+    sums = {"reached": [], "other": []}
+    for g in range(games):
+        total, t = 0.0, 0
+        for step in range(len(paper)):
+            total += gamma ** t * (shaped[step, g, 0] - paper[step, g, 0])
+            t += 1
+            if ended[step, g]:
+                sums["reached" if paper[step, g, 0] >= 40 else "other"].append((total, gamma ** t))
+                total, t = 0.0, 0
+    assert len(sums["reached"]) > 10 and len(sums["other"]) > 10
+    assert np.allclose([total for total, _ in sums["reached"]], 8.0, atol=1e-4)
+    # a collision or break (or a time-out) at a cell d >= 1 steps from the destination: 8 - gamma^T d
+    assert all(total <= 8.0 - discount + 1e-4 for total, discount in sums["other"])
 
 
 @pytest.mark.parametrize("key, value, allowed", [("reward_formation_kept", "x", "null or a number"),

@@ -1,7 +1,11 @@
 """Potential-based reward shaping (Ng, Harada and Russell 1999), a training option.
 
 The stored reward of a step becomes ``r + w * (gamma * Phi(s') - Phi(s))``; the game's own reward
-(the paper's) is untouched, and so are the optimal policies. Potentials, per agent:
+(the paper's) is untouched. Over an episode the shaping sums to ``w * (gamma^T Phi(s_T) - Phi(s_0))``. Where
+the leader reaches, ``Phi(s_T)`` is 0; where a collision or break ends the episode, ``s_T`` is where it ended
+and nothing bootstraps after it, so that end is charged ``w`` times the steps the leader had left (discounted),
+on top of the game's -1s. That charge is not policy-invariant (Ng et al. take ``Phi`` of an ending as 0):
+it makes ending far from the destination dearer than ending near it. Potentials, per agent:
 
 - ``distance``: the leader's minus Chebyshev distance to the destination (its steps to go,
   ignoring obstacles); 0 for followers.
