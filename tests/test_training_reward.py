@@ -51,7 +51,7 @@ def test_the_shaping_telescopes_to_a_reach_and_charges_the_distance_left_at_a_co
     to go (9x9 board) where it reaches, less where a collision or break ends it, as Phi(s_T) is kept there and
     nothing bootstraps after it (docs/RECIPE.md, "Distance shaping")."""
     config = GameConfig(setting=None, height=9, width=9, n_obstacles=1, obs_type="grid", frame_stack=2)
-    gamma, games = 0.97, 32
+    gamma, games, start = 0.97, 32, config.height - 1  # the leader starts on the bottom row, 8 steps to go
     paper, ended, _ = play(GameRollout(config, games, seed=3), 150)
     shaped, _, _ = play(GameRollout(config, games, seed=3, potential=Potential("distance", config), shaping=1.0,
                                     gamma=gamma), 150)
@@ -66,9 +66,9 @@ def test_the_shaping_telescopes_to_a_reach_and_charges_the_distance_left_at_a_co
                 sums["reached" if paper[step, g, 0] >= 40 else "other"].append((total, gamma ** t))
                 total, t = 0.0, 0
     assert len(sums["reached"]) > 10 and len(sums["other"]) > 10
-    assert np.allclose([total for total, _ in sums["reached"]], 8.0, atol=1e-4)
-    # a collision or break (or a time-out) at a cell d >= 1 steps from the destination: 8 - gamma^T d
-    assert all(total <= 8.0 - discount + 1e-4 for total, discount in sums["other"])
+    assert np.allclose([total for total, _ in sums["reached"]], start, atol=1e-4)
+    # a collision or break at a cell d >= 1 steps from the destination: start - gamma^T d
+    assert all(total <= start - discount + 1e-4 for total, discount in sums["other"])
 
 
 @pytest.mark.parametrize("key, value, allowed", [("reward_formation_kept", "x", "null or a number"),
