@@ -47,7 +47,7 @@ def one_command_row(stem: str, r: dict, shipped: dict | None) -> str:
     refit = (trained["refit_seconds"] or 0.0) / 60
     steps = "none" if r["steps_success_mean"] is None else \
         f"{r['steps_success_mean']:.2f} / {r['planner']['planner_steps_on_successes_mean']:.2f}"
-    ships = shipped is not None and shipped["trained"] is not None and \
+    ships = shipped is not None and shipped.get("trained") is not None and \
         shipped["trained"]["env_steps"] == trained["env_steps"] and shipped["trained"]["seed"] == trained["seed"]
     cells = [str(r["setting"]), str(trained["seed"]), f"{pct(r['success'])} ({pct(low)[:-1]}-{pct(high)})",
              pct(r["leader_collision"]), pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]),
