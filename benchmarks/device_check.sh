@@ -1,14 +1,17 @@
 #!/usr/bin/env bash
-# The checks that need the accelerator machine (one GPU, 16 cores), in under 8 minutes:
+# The checks that need the accelerator machine (one GPU, 16 cores), in under 9 minutes:
 #   1. the learner's samples per second on the GPU, at batch sizes from 32 to 2048;
-#   2. sampling env steps/s with 1, 2, 4, 8 and 14 rollout actors, the learner idle;
+#   2. sampling env steps/s with 1, 4 and 14 rollout actors, the learner idle;
 #   3. the whole path on configs/setting1.yaml (its teacher included) with 14 rollout actors and the
-#      GPU learner, with its account of every second (benchmarks/where_time_goes.py).
+#      GPU learner, with its account of every second (benchmarks/where_time_goes.py);
+#   4. the same on configs/reward_only/setting4.yaml: the env steps/s that say how far 30 minutes of
+#      the accelerator take the reward-only recipe (issue 41's aim there).
 # The same code path as on a CPU: only resources.num_gpus_per_learner and the actors change.
 #
 # Here, first: bash benchmarks/device_bundle.sh (Ray and the other packages that machine lacks).
-# Then, with the device tool: run command "bash benchmarks/device_check.sh", carry [".bundle"],
-# timeout_s 540. Each step prints its figures as it ends; a step that overruns its share is cut, not the rest.
+# Then move policies/ out of the tree (tracked files travel too, and with the policies and the bundle a
+# call would carry 74 MB, over its 64 MiB), and with the device tool: run command
+# "bash benchmarks/device_check.sh", carry [".bundle"], timeout_s 570; then move policies/ back. Each step prints its figures as it ends; a step that overruns its share is cut, not the rest.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -19,12 +22,14 @@ fi
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1 RAY_AUTH_MODE=disabled
 $PY -c "import torch, ray; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), 'ray', ray.__version__)"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null; nproc
+GPU_PATH=(--cores "$(nproc)" --set resources.num_rollout_actors=14 --set resources.cpus_per_rollout_actor=1
+          --set resources.num_gpus_per_learner=1)
 
 echo "== 1. the learner on the GPU (benchmarks/learner_samples.py)"
-timeout 120 $PY benchmarks/learner_samples.py configs/setting1.yaml --gpu --batches 32,128,512,2048 --updates 20
+timeout 90 $PY benchmarks/learner_samples.py configs/setting1.yaml --gpu --batches 32,128,512,2048 --updates 20
 echo "== 2. sampling alone (benchmarks/train_throughput.py --sampling)"
-timeout 150 $PY benchmarks/train_throughput.py --sampling 1,2,4,8,14 --seconds 12 --warmup 500
+timeout 120 $PY benchmarks/train_throughput.py --sampling 1,4,14 --seconds 10 --warmup 500
 echo "== 3. the whole path: configs/setting1.yaml, 14 rollout actors, the GPU learner (benchmarks/where_time_goes.py)"
-timeout 180 $PY benchmarks/where_time_goes.py configs/setting1.yaml --env-steps 12000 --cores "$(nproc)" \
-  --set resources.num_rollout_actors=14 --set resources.cpus_per_rollout_actor=1 \
-  --set resources.num_gpus_per_learner=1
+timeout 150 $PY benchmarks/where_time_goes.py configs/setting1.yaml --env-steps 8000 "${GPU_PATH[@]}"
+echo "== 4. the same on configs/reward_only/setting4.yaml"
+timeout 150 $PY benchmarks/where_time_goes.py configs/reward_only/setting4.yaml --env-steps 8000 "${GPU_PATH[@]}"

@@ -134,14 +134,15 @@ def main() -> None:
         account, wall, steps, updates, trained = in_the_run(run, args.env_steps)
     finally:
         ray.shutdown()
-    lone = alone(run, args.env_steps, trained)
-    lone_steps = lone["env_steps"]
-    # the learner alone ran the updates of lone_steps env steps at the config's replay ratio
+    # printed before the stages alone, which can take minutes: a run cut short keeps its main figure
     print(f"{args.config} {' '.join(args.set)}".strip())
     print(f"in the run: {steps} env steps in {wall:.1f} s = {steps / wall:.1f} env steps/s, "
           f"{updates / wall:.2f} learner updates/s ({updates / max(1, steps):.4f} per env step); "
           f"{run.resources.num_rollout_actors} rollout actor(s) x {run.resources.games_per_actor} games, "
-          f"{args.cores} cores")
+          f"{args.cores} cores", flush=True)
+    lone = alone(run, args.env_steps, trained)
+    lone_steps = lone["env_steps"]
+    # the learner alone ran the updates of lone_steps env steps at the config's replay ratio
     print(f"{'stage':<22} {'in the run':>11} {'alone':>8}   (seconds per 1,000 env steps)")
     total_alone = 0.0
     processes = {"rollout": run.resources.num_rollout_actors, "replay": run.resources.num_replay_shards,
