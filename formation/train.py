@@ -36,6 +36,7 @@ from formation.recipe.config import RunConfig
 from formation.storage import RemoteRun, is_uri, write_text_whole
 
 CHECKPOINT = "checkpoint"
+REFIT_ROUNDS = "refit.rounds"  # the refit phase's finished rounds, until its team is in refitted/
 # what --set may change when resuming: how long to train, a fine-tuning phase (a lower lr, and a
 # replay refilled to learning_starts records before the first update, as it starts empty), and where it
 # runs (a run started on a cluster or a GPU machine goes on on a laptop, and the other way round), and the
@@ -288,7 +289,8 @@ def refit_phase(out_dir: Path, run: RunConfig, say: Callable[[str], None]) -> di
 
     policy = load(checkpoint_path(out_dir))
     say(f"refit: {run.refit.rounds} round(s) of {run.refit.episodes:,} games, labels over {run.refit.horizon} steps")
-    report = refit_recorded(policy, run.refit, say)
+    # a run stopped in its refit phase goes on, with --resume, after the last round it finished
+    report = refit_recorded(policy, run.refit, say, keep=out_dir / REFIT_ROUNDS)
     clock = time.monotonic()
     summary = play_greedy(policy.game, policy.act_batch, run.eval.episodes, run.eval.seed)["summary"]
     report.update(evaluation={"seed": run.eval.seed, "greedy": summary})
@@ -300,19 +302,20 @@ def refit_phase(out_dir: Path, run: RunConfig, say: Callable[[str], None]) -> di
     if final.exists():
         shutil.rmtree(final)
     os.rename(fresh, final)
+    shutil.rmtree(out_dir / REFIT_ROUNDS, ignore_errors=True)
     say(f"refitted in {report['seconds'] / 60:.1f} min: greedy success {summary['success']:.1%} on "
         f"{summary['episodes']} held-out scenarios; the team: {final}")
     return summary
 
 
-def refit_recorded(policy, settings, say: Callable[[str], None]) -> dict:
-    """``formation.recipe.safety_refit.refit`` of ``policy``, its report (returned) kept on the policy's card
-    with the refit's start, end, commit and hardware, as training's record; an earlier refit's report stays
-    inside it (``earlier``)."""
+def refit_recorded(policy, settings, say: Callable[[str], None], keep: Path | None = None) -> dict:
+    """``formation.recipe.safety_refit.refit`` of ``policy`` (its finished rounds kept in ``keep``), its report
+    (returned) kept on the policy's card with the refit's start, end, commit and hardware, as training's record;
+    an earlier refit's report stays inside it (``earlier``)."""
     from formation.recipe.safety_refit import refit
 
     earlier, started = policy.refit_report, now()
-    report = refit(policy, settings, say=say)
+    report = refit(policy, settings, say=say, keep=keep)
     report.update(started=started, ended=now(), commit=code_commit(), hardware=hardware())
     policy.refit_report = {**report, "earlier": earlier} if earlier else report
     return policy.refit_report

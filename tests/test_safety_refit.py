@@ -3,6 +3,7 @@ the planner, while the Q-values stay as trained; the refitted team is written as
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 
@@ -133,7 +134,7 @@ def test_training_fits_the_safety_heads_through_ray_and_ends_with_the_refit_phas
     # a refit again (a --resume after more training does one) replaces the team whole
     refit_phase(out, RunConfig.load_saved(out / "config.yaml", {"refit.episodes": 20}), say=lambda line: None)
     assert load(out).refit_report["settings"]["episodes"] == 20
-    assert [p.name for p in out.iterdir() if p.name.startswith(REFITTED)] == [REFITTED]
+    assert [p.name for p in out.iterdir() if p.name.startswith((REFITTED, "refit."))] == [REFITTED]
 
 
 @pytest.mark.parametrize("seed,bad", [(2_000_000, True), (1_999_996, True), (2_000_001, True), (1_999_995, False),
@@ -208,6 +209,41 @@ def test_refit_cuts_the_heads_wrong_verdicts_and_leaves_the_q_values_alone():
         assert all(not p.requires_grad for p in net.parameters()) and not net.training
         assert {n for n in trained[module]} == {n for n, _ in net.safety.named_parameters()} | \
             {n for n, _ in net.safety_encoder.named_parameters()}
+
+
+def test_a_refit_stopped_after_a_round_goes_on_from_it_to_the_same_heads(tmp_path):
+    settings = RefitSettings(rounds=2, episodes=60, horizon=2, holdout_episodes=30, epsilon=0.2, workers=1)
+    whole = grid_team()
+    report = refit(whole, settings, say=lambda _: None)
+
+    def stop_after_round_1(line: str) -> None:
+        if line.startswith("round 1/2 done"):
+            raise KeyboardInterrupt  # Ctrl-C, or a session's end, between rounds
+    keep = tmp_path / "rounds"
+    with pytest.raises(KeyboardInterrupt):
+        refit(grid_team(), settings, say=stop_after_round_1, keep=keep)
+    lines: list[str] = []
+    resumed = grid_team()  # the trained team loaded again, as --resume does
+    again = refit(resumed, settings, say=lines.append, keep=keep)
+    assert lines[0].startswith("refit: round(s) 1-1 kept in")
+    assert not any(line.startswith("round 1/2") for line in lines)  # round 1 was not played again
+    assert [r["states_in_all"] for r in again["rounds"]] == [r["states_in_all"] for r in report["rounds"]]
+    assert again["rounds"][1]["holdout"] == report["rounds"][1]["holdout"] and again["holdout"] == report["holdout"]
+    for module, net in resumed.networks.items():
+        for name, value in net.state_dict().items():
+            assert torch.equal(value, whole.networks[module].state_dict()[name]), name
+    assert [p.name for p in keep.iterdir()] == ["round2"]
+    fewer = dataclasses.replace(settings, episodes=50)
+    lines.clear()  # rounds kept are no start for a refit with other settings
+    refit(grid_team(), fewer, say=lines.append, keep=keep)
+    assert lines[0] == f"refit: the round(s) kept in {keep} were made with other settings or for another team; " \
+        "starting over"
+    other = grid_team()  # nor for another team, such as the same run trained further
+    with torch.no_grad():
+        other.networks["leader"].value[0].weight[0, 0] += 1
+    lines.clear()
+    refit(other, fewer, say=lines.append, keep=keep)
+    assert lines[0].endswith("were made with other settings or for another team; starting over")
 
 
 def test_a_head_on_the_q_values_features_refits_alone():

@@ -18,12 +18,15 @@ bit each, 756 bytes a state on the paper's settings.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import math
 import os
+import shutil
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -64,12 +67,23 @@ class StateBank:
     def nbytes(self) -> int:
         return sum(p.nbytes for p in self.parts)
 
-    def batch(self, idx: np.ndarray) -> torch.Tensor:
-        """The states ``idx`` as ``prepare`` gave them, (len(idx), C, H, W) floats in channels-last memory."""
+    @classmethod
+    def of_bits(cls, bits: np.ndarray, shape: tuple[int, int, int]) -> StateBank:
+        """A bank of the states ``bits()`` gave (a kept refit's)."""
+        bank = cls()
+        bank.parts, bank.shape = [bits], tuple(shape)
+        return bank
+
+    def bits(self) -> np.ndarray:
+        """Every state, one row of packed bits each."""
         if self._joined is None:
             self._joined = np.concatenate(self.parts) if len(self.parts) > 1 else self.parts[0]
             self.parts = [self._joined]
-        bits = np.unpackbits(self._joined[idx], axis=1, count=int(np.prod(self.shape)))
+        return self._joined
+
+    def batch(self, idx: np.ndarray) -> torch.Tensor:
+        """The states ``idx`` as ``prepare`` gave them, (len(idx), C, H, W) floats in channels-last memory."""
+        bits = np.unpackbits(self.bits()[idx], axis=1, count=int(np.prod(self.shape)))
         return torch.from_numpy(bits.reshape(len(idx), *self.shape)).float().permute(0, 3, 1, 2)
 
 
@@ -160,6 +174,12 @@ def verdict_errors(networks: dict[str, DuelingQNetwork], bank: StateBank, safe: 
     return counts
 
 
+def heads_optimizer(networks: dict[str, DuelingQNetwork], lr: float) -> torch.optim.Optimizer:
+    """Adam over every ``safety_parameters``, in one fixed order (a kept optimizer state loads into it)."""
+    return torch.optim.Adam([p for net in networks.values() for m in safety_parameters(net) for p in m.parameters()],
+                            lr=lr)
+
+
 def fit(networks: dict[str, DuelingQNetwork], bank: StateBank, safe: np.ndarray, updates: int, lr: float,
         batch_size: int, rng: np.random.Generator, optimizer: torch.optim.Optimizer | None = None,
         progress: Callable[[int, int, float], None] | None = None) -> tuple[torch.optim.Optimizer, float]:
@@ -167,9 +187,8 @@ def fit(networks: dict[str, DuelingQNetwork], bank: StateBank, safe: np.ndarray,
     uniformly from ``bank``; only ``safety_parameters`` learn. Returns the optimizer (to go on with) and the
     mean loss of the last updates."""
     modules = [m for net in networks.values() for m in safety_parameters(net)]
-    params = [p for m in modules for p in m.parameters()]
     if optimizer is None:
-        optimizer = torch.optim.Adam(params, lr=lr)
+        optimizer = heads_optimizer(networks, lr)
     for m in modules:
         m.requires_grad_(True)
         m.train()
@@ -231,9 +250,13 @@ def add_safety_heads(policy) -> list[str]:
     return added
 
 
-def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -> dict:
+def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print, keep: Path | None = None) -> dict:
     """Refit ``policy``'s safety heads in place (``RefitSettings``), first adding them where it has none
-    (``add_safety_heads``), and set its ``veto_threshold``; the report of every round."""
+    (``add_safety_heads``), and set its ``veto_threshold``; the report of every round.
+
+    With ``keep`` (a folder), each finished round leaves there all that the next ones need, and a refit of the
+    same ``policy`` and settings (more or fewer ``rounds`` aside) that finds it goes on after that round, to
+    the same heads an unbroken refit makes: a stopped run loses at most the round in progress."""
     check_refittable(policy)
     added = add_safety_heads(policy)
     if added:
@@ -249,6 +272,8 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
         return f"{(time.monotonic() - started) / 60:.1f} min"
     report: dict = {"settings": {k: getattr(settings, k) for k in settings.__dataclass_fields__}, "rounds": [],
                     "heads_added": added}
+    team = team_digest(networks)
+    kept = kept_rounds(keep, settings, team, say) if keep is not None else None
     import multiprocessing
 
     context = multiprocessing.get_context("fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn")
@@ -263,7 +288,21 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
             return np.concatenate(parts) if parts else np.zeros((0, JOINT), bool)
 
         holdout_bank, holdout_safe = StateBank(), None
-        if settings.holdout_episodes:
+        bank, safe_parts, optimizer, first = StateBank(), [], None, 0
+        if kept is not None:
+            first, optimizer = kept["round"], heads_optimizer(networks, settings.lr)
+            for module, net in networks.items():
+                for part, state in zip(safety_parameters(net), kept["heads"][module]):
+                    part.load_state_dict(state)
+            optimizer.load_state_dict(kept["optimizer"])
+            rng.bit_generator.state = kept["rng"]
+            started -= kept["seconds"]
+            report = {**kept["report"], "settings": report["settings"]}
+            bank, safe_parts = kept["bank"], [kept["safe"]]
+            holdout_bank, holdout_safe = kept["holdout_bank"], kept["holdout_safe"]
+            policy.learned_veto = True
+            say(f"refit: round(s) 1-{first} kept in {keep}; going on from there")
+        elif settings.holdout_episodes:
             # seeds below the refit's own: the held-out games never overlap the ones it learns from
             held = gather(policy, holdout_bank, settings.holdout_episodes,
                           settings.seed - math.ceil(settings.holdout_episodes / REFIT_GAMES_PER_SEED),
@@ -273,8 +312,7 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
             report["holdout"] = {"states": len(holdout_bank), "before": before}
             say(f"held-out states: {len(holdout_bank):,}; the heads' wrong verdicts before: "
                 f"{_errors_line(before)}")
-        bank, safe_parts, optimizer = StateBank(), [], None
-        for round_ in range(settings.rounds):
+        for round_ in range(first, settings.rounds):
             t0 = time.monotonic()
             seed = settings.seed + round_ * math.ceil(settings.episodes / REFIT_GAMES_PER_SEED)
             gathered = gather(policy, bank, settings.episodes, seed, settings.epsilon, rng, label,
@@ -303,11 +341,76 @@ def refit(policy, settings: RefitSettings, say: Callable[[str], None] = print) -
             if holdout_safe is not None:
                 entry["holdout"] = verdict_errors(networks, holdout_bank, holdout_safe)
             report["rounds"].append(entry)
+            if keep is not None:
+                keep_round(keep, round_ + 1, settings, team, networks, optimizer, rng, bank, safe, holdout_bank,
+                           holdout_safe, report, time.monotonic() - started)
             say(f"round {round_ + 1}/{settings.rounds} done in {time.monotonic() - t0:.0f} s: loss {loss:.5f}"
                 + (f"; held-out wrong verdicts: {_errors_line(entry['holdout'])}" if holdout_safe is not None else ""))
     policy.veto_threshold, policy.veto_fallback = settings.veto_threshold, settings.veto_fallback
     report["seconds"] = time.monotonic() - started
     return report
+
+
+def _lasting(settings: RefitSettings) -> dict:
+    """The settings a finished round depends on: all but how many rounds follow, the labels' processes
+    and the veto the finished team plays with."""
+    return {k: getattr(settings, k) for k in settings.__dataclass_fields__
+            if k not in ("rounds", "workers", "veto_threshold", "veto_fallback")}
+
+
+def team_digest(networks: dict[str, DuelingQNetwork]) -> str:
+    """A fingerprint of what a refit does not change (all but the safety heads and their encoders): rounds kept
+    for one trained team are no start for another, such as the same run trained further."""
+    digest = hashlib.sha256()
+    for module, net in sorted(networks.items()):
+        for name, value in sorted(net.state_dict().items()):
+            if not name.startswith(("safety.", "safety_encoder.")):
+                digest.update(f"{module}.{name}".encode())
+                digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
+
+
+def keep_round(keep: Path, round_: int, settings: RefitSettings, team: str, networks: dict[str, DuelingQNetwork],
+               optimizer: torch.optim.Optimizer, rng: np.random.Generator, bank: StateBank, safe: np.ndarray,
+               holdout_bank: StateBank, holdout_safe: np.ndarray | None, report: dict, seconds: float) -> None:
+    """All that the rounds after ``round_`` need, in ``keep/round<round_>``; its ``state.pt`` comes last, so that
+    a folder holding one is whole; the earlier rounds' folders go once it is there."""
+    folder = keep / f"round{round_}"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    np.save(folder / "bank.npy", bank.bits())
+    np.save(folder / "safe.npy", safe)
+    if holdout_safe is not None:
+        np.save(folder / "holdout.npy", holdout_bank.bits())
+        np.save(folder / "holdout_safe.npy", holdout_safe)
+    state = {"round": round_, "settings": _lasting(settings), "team": team, "seconds": seconds, "report": report,
+             "rng": rng.bit_generator.state, "optimizer": optimizer.state_dict(), "shape": bank.shape,
+             "heads": {m: [part.state_dict() for part in safety_parameters(net)] for m, net in networks.items()}}
+    torch.save(state, folder / "state.pt.new")
+    os.replace(folder / "state.pt.new", folder / "state.pt")
+    for earlier in keep.glob("round*"):
+        if earlier != folder:
+            shutil.rmtree(earlier, ignore_errors=True)
+
+
+def kept_rounds(keep: Path, settings: RefitSettings, team: str, say: Callable[[str], None]) -> dict | None:
+    """What ``keep_round`` left in ``keep`` after the last whole round, or None where nothing was kept or it was
+    kept with other settings or for another ``team`` (then it is removed, and the refit starts over)."""
+    whole = [f for f in keep.glob("round*") if f.name[5:].isdigit() and (f / "state.pt").is_file()]
+    if not whole:
+        return None
+    folder = max(whole, key=lambda f: int(f.name[5:]))
+    state = torch.load(folder / "state.pt", weights_only=False)  # written by keep_round: numbers and tensors
+    if state["settings"] != _lasting(settings) or state["round"] > settings.rounds or state["team"] != team:
+        say(f"refit: the round(s) kept in {keep} were made with other settings or for another team; starting over")
+        shutil.rmtree(keep)
+        return None
+    state["bank"] = StateBank.of_bits(np.load(folder / "bank.npy"), state["shape"])
+    state["safe"] = np.load(folder / "safe.npy")
+    held = (folder / "holdout_safe.npy").is_file()
+    state["holdout_bank"] = StateBank.of_bits(np.load(folder / "holdout.npy"), state["shape"]) if held else StateBank()
+    state["holdout_safe"] = np.load(folder / "holdout_safe.npy") if held else None
+    return state
 
 
 def _errors_line(counts: dict[str, int]) -> str:
