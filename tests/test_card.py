@@ -126,7 +126,7 @@ def test_a_refit_keeps_the_training_section_and_adds_its_own(smoke_run, tmp_path
     import formation.recipe.safety_refit as safety_refit
 
     monkeypatch.setattr(safety_refit, "check_refittable", lambda policy, name=None: None)
-    monkeypatch.setattr(safety_refit, "refit", lambda policy, settings, say: {"rounds": [], "seconds": 1.0})
+    monkeypatch.setattr(safety_refit, "refit", lambda policy, settings, say, keep=None: {"rounds": [], "seconds": 1.0})
     assert main(["refit", str(smoke_run), str(tmp_path / "refitted"), "--set", "refit.rounds=1"]) == 0
     card = json.loads((tmp_path / "refitted" / "policy.json").read_text())
     assert card["training"] == load(smoke_run).training

@@ -244,6 +244,11 @@ def test_a_refit_stopped_after_a_round_goes_on_from_it_to_the_same_heads(tmp_pat
     lines.clear()
     refit(other, fewer, say=lines.append, keep=keep)
     assert lines[0].endswith("were made with other settings or for another team; starting over")
+    (keep / "round2" / "bank.npy").write_bytes(b"cut short")  # a disk that lost a file: start over, in one line
+    lines.clear()
+    refit(other, fewer, say=lines.append, keep=keep)
+    assert lines[0].startswith(f"refit: the round(s) kept in {keep} could not be read (") \
+        and lines[0].endswith("); starting over")
 
 
 def test_a_head_on_the_q_values_features_refits_alone():
