@@ -401,25 +401,24 @@ def kept_rounds(keep: Path, settings: RefitSettings, team: str, say: Callable[[s
     if not whole:
         return None
     folder = max(whole, key=lambda f: int(f.name[5:]))
+    why = None
     try:
         state = torch.load(folder / "state.pt", weights_only=False)  # written by keep_round: numbers and tensors
         if state["settings"] != _lasting(settings) or state["round"] > settings.rounds or state["team"] != team:
-            say(f"refit: the round(s) kept in {keep} were made with other settings or for another team; "
-                "starting over")
-            shutil.rmtree(keep)
-            return None
-        state["bank"] = StateBank.of_bits(np.load(folder / "bank.npy"), state["shape"])
-        state["safe"] = np.load(folder / "safe.npy")
-        held = (folder / "holdout_safe.npy").is_file()
-        state["holdout_bank"] = StateBank.of_bits(np.load(folder / "holdout.npy"), state["shape"]) if held \
-            else StateBank()
-        state["holdout_safe"] = np.load(folder / "holdout_safe.npy") if held else None
+            why = "were made with other settings or for another team"
+        else:
+            state["bank"] = StateBank.of_bits(np.load(folder / "bank.npy"), state["shape"])
+            state["safe"] = np.load(folder / "safe.npy")
+            held = (folder / "holdout_safe.npy").is_file()
+            state["holdout_bank"] = StateBank.of_bits(np.load(folder / "holdout.npy"), state["shape"]) if held \
+                else StateBank()
+            state["holdout_safe"] = np.load(folder / "holdout_safe.npy") if held else None
+            if len(state["safe"]) != len(state["bank"]):
+                raise ValueError("states and labels differ")
     except (OSError, EOFError, ValueError, RuntimeError, KeyError, pickle.UnpicklingError) as error:
-        say(f"refit: the round(s) kept in {keep} could not be read ({type(error).__name__}: {error}); starting over")
-        shutil.rmtree(keep, ignore_errors=True)
-        return None
-    if len(state["safe"]) != len(state["bank"]):
-        say(f"refit: the round(s) kept in {keep} could not be read (states and labels differ); starting over")
+        why = f"could not be read ({type(error).__name__}: {error})"
+    if why is not None:
+        say(f"refit: the round(s) kept in {keep} {why}; starting over")
         shutil.rmtree(keep, ignore_errors=True)
         return None
     return state
