@@ -14,7 +14,8 @@ python3 -m pip install -q --no-deps --only-binary=:all: --python-version 3.12 --
   --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
   --target "$site" \
   ray==2.60.0 jsonschema jsonschema-specifications referencing rpds-py \
-  gymnasium==1.2.2 farama-notifications pettingzoo==1.27.0 dm-tree==0.1.10 lz4 ormsgpack tensorboardX==2.6.5
+  gymnasium==1.2.2 farama-notifications pettingzoo==1.27.0 dm-tree==0.1.10 lz4 ormsgpack tensorboardX==2.6.5 \
+  pydantic==2.14.4 pydantic-core==2.50.5 annotated-types typing-inspection typing-extensions
 # what the checks never load (Java, Serve, the dashboard's web client, test suites) and the binaries'
 # debugging symbols
 rm -rf "$site"/ray/jars "$site"/ray/serve "$site"/ray/dashboard/client "$site"/ray/tests "$site"/ray/*/tests "$site"/bin
