@@ -14,13 +14,7 @@
 # "bash benchmarks/device_check.sh", carry [".bundle"], timeout_s 590; then move policies/ back. Each step prints its figures as it ends; a step that overruns its share is cut, not the rest.
 set -uo pipefail
 cd "$(dirname "$0")/.."
-PY=${PYTHON:-python3}
-if [ -f .bundle/site.tar.xz ]; then
-  mkdir -p /tmp/site && xz -dc .bundle/site.tar.xz | tar -xf - -C /tmp/site || exit 1
-  export PYTHONPATH=/tmp/site
-fi
-CORES=$(nproc)   # before OMP_NUM_THREADS=1, which nproc obeys
-export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1 RAY_AUTH_MODE=disabled
+. benchmarks/device_env.sh
 $PY -c "import torch, ray; print('torch', torch.__version__, 'cuda', torch.cuda.is_available(), 'ray', ray.__version__)"
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null; echo "$CORES cores"
 GPU_PATH=(--cores "$CORES" --set resources.num_rollout_actors=14 --set resources.cpus_per_rollout_actor=1

@@ -17,12 +17,8 @@ set -uo pipefail
 [ $# -ge 3 ] && [ $(( ($# - 1) % 2 )) -eq 0 ] || { echo "usage: $0 DEADLINE_S NAME \"CONFIG [--set K=V ...]\" [NAME \"...\"]..." >&2; exit 2; }
 deadline=$1; shift
 cd "$(dirname "$0")/.."
-PY=${PYTHON:-python3} OUT=${OUT:-/tmp/device_out} RUNS=$(mktemp -d)
-if ! $PY -c "import ray" 2>/dev/null; then  # that machine: Ray and the rest from the bundle
-  mkdir -p /tmp/site && xz -dc .bundle/site.tar.xz | tar -xf - -C /tmp/site || exit 1
-  export PYTHONPATH=/tmp/site
-fi
-export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1 RAY_AUTH_MODE=disabled
+. benchmarks/device_env.sh
+OUT=${OUT:-/tmp/device_out} RUNS=$(mktemp -d)
 mkdir -p "$OUT"
 start=$SECONDS names=() pids=()
 while [ $# -gt 0 ]; do
