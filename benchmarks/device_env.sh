@@ -3,6 +3,7 @@
 # ($CORES, counted before OMP_NUM_THREADS=1, which nproc obeys) and the environment every check runs in.
 PY=${PYTHON:-python3}
 if ! $PY -c "import ray" 2>/dev/null; then
+  [ -f .bundle/site.tar.xz ] || { echo "$PY has no Ray and .bundle/site.tar.xz is missing: run bash benchmarks/device_bundle.sh here first, then carry .bundle" >&2; exit 2; }
   mkdir -p /tmp/site && xz -dc .bundle/site.tar.xz | tar -xf - -C /tmp/site || exit 1
   export PYTHONPATH=/tmp/site
 fi
