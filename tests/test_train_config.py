@@ -73,6 +73,8 @@ def test_numbers_in_exponent_notation_are_numbers_in_a_file_and_in_overrides(tmp
     ({"train": {"margin_gap": -1}}, "train.margin_gap"),
     ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),
     ({"train": {"leader_window": [1, 2, -3]}}, "train.leader_window"),
+    ({"train": {"destination_compass": "yes"}}, "train.destination_compass"),
+    ({"train": {"destination_compass": True, "leader_window": None}}, "train.destination_compass"),
     ({"train": {"path": "stock"}}, "train.path"),  # the default recipe is not RLlib's stock DQN
     ({"eval": {"episodes": 2, "gif_episodes": 3}}, "eval.gif_episodes"),
 ])

@@ -123,6 +123,10 @@ class TrainSettings:
     # the Q-networks look through a window that follows the leader: cells above it, below it, and either
     # side (formation.recipe.qnet.LeaderWindow); null: the whole screen, as the paper's networks
     leader_window: tuple[int, int, int] | None = (12, 3, 10)
+    # the leader's window also marks the destination, or, where it lies outside, the window's edge nearest to it
+    # (formation.recipe.qnet.LeaderWindow): on the 50x50 boards the leader otherwise sees it only in the last 12
+    # rows. Needs leader_window
+    destination_compass: bool = False
     # pixels only: the Q-networks read one pixel per cell of the board from each screen (the renderer paints a
     # whole cell in one colour, so nothing is lost; formation.recipe.qnet.ScreenCells), then every cell, and the
     # replay stores only those cells; false: the screen in 4x4-pixel patches
@@ -184,7 +188,7 @@ class TrainSettings:
         _integer(self, "seed", 0)
         for name in ("prioritized", "followers_share_policy", "dagger", "team_reward", "robust_first_step",
                      "screen_cells", "obstacle_forecast", "follower_answers_leader", "answer_every_leader_move",
-                     "safety_encoder"):
+                     "safety_encoder", "destination_compass"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:
@@ -208,6 +212,9 @@ class TrainSettings:
                 or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in self.leader_window)):
             raise ConfigError(f"train.leader_window: {self.leader_window!r} is not allowed; "
                               "allowed: null or three integers >= 0 (cells above, below, either side)")
+        if self.destination_compass and self.leader_window is None:
+            raise ConfigError("train.destination_compass: true needs train.leader_window other than null; "
+                              "allowed: false")
         if len(self.channels) != 3 or not all(isinstance(c, int) and c >= 1 for c in self.channels):
             raise ConfigError(f"train.channels: {list(self.channels)!r} is not allowed; allowed: three integers >= 1")
 
