@@ -94,7 +94,7 @@ def test_a_run_from_before_the_training_record_still_says_what_it_knows(smoke_ru
     assert training_line(training) == (f"trained: {result['env_steps']:,} env steps in unrecorded time on "
                                        "unrecorded hardware; commit unknown; the planner's labels (train.dagger, "
                                        "train.demonstrations)")
-    reward_only = yaml.safe_load(Path("configs/reward_only/setting1.yaml").read_text())
+    reward_only = RunConfig.load("configs/reward_only/setting1.yaml").to_dict()  # as a run saves it: every key
     assert training_line({**training, "config": reward_only}).endswith("; from the reward alone, no planner")
 
 
