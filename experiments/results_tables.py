@@ -110,7 +110,14 @@ INGREDIENTS = {
     "grid_kept0_team_seed0": "setting 1, grid: kept 0, team reward",
     "grid_kept0_team_seed1": "setting 1, grid: kept 0, team reward",
     "grid_kept0_team_noshaping_seed0": "setting 1, grid: kept 0, team reward, no shaping",
-    "pixels_setting1_seed0": "setting 1, pixels: kept 0, team reward (`configs/reward_only/setting1.yaml`)",
+    "pixels_setting1_nocompass_seed0": "setting 1, pixels: kept 0, team reward",
+    "pixels_setting1_seed0": "setting 1, pixels: kept 0, team reward, compass (`configs/reward_only/setting1.yaml`)",
+    "pixels_setting2_nocompass_seed0": "setting 2, pixels: kept 0, team reward",
+    "pixels_setting2_seed0": "setting 2, pixels: kept 0, team reward, compass (`configs/reward_only/setting2.yaml`)",
+    "pixels_setting3_nocompass_seed0": "setting 3, pixels: kept 0, team reward",
+    "pixels_setting3_seed0": "setting 3, pixels: kept 0, team reward, compass (`configs/reward_only/setting3.yaml`)",
+    "pixels_setting4_nocompass_seed0": "setting 4, pixels: kept 0, team reward",
+    "pixels_setting4_seed0": "setting 4, pixels: kept 0, team reward, compass (`configs/reward_only/setting4.yaml`)",
 }
 
 
