@@ -127,8 +127,8 @@ def test_the_compass_points_at_the_destination_on_screens_read_per_cell():
     net = spec.build()
     x = net.prepare(obs)  # (N, C, rows, columns), the compass the plane before the board's
     assert x.shape[1:] == (6 + 5 + 2, 16, 21)
-    # the leaders start at (49, 15), the destination is at (0, 25): up and 10 columns right, the top row's
-    # last entry but one
+    # the leaders start at (49, 15), the destination is at (0, 25): 49 rows up, beyond the window's top, and
+    # 10 columns right, its last column
     assert torch.equal(x[:, -2].nonzero(), torch.tensor([[0, 0, 20], [1, 0, 20]]))
     assert net(obs).shape == (2, 4)
 
