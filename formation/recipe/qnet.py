@@ -70,6 +70,13 @@ def team_q_values(q: dict[str, np.ndarray], modules: list[str], leader_moves: np
     return np.stack([answered[m] for m in modules], axis=1)
 
 
+def first_entry(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(N, H, W)`` bool -> (N,) long, the row-major index of each sample's first True entry (0 where there is
+    none), and (N,) bool, whether there is one."""
+    flat = mask.reshape(mask.shape[0], -1)
+    return flat.float().argmax(1), flat.any(1)
+
+
 def leader_entry(obs: torch.Tensor, frame_channels: int, screens: bool) -> torch.Tensor:
     """(N,) long: the row-major index of the leader's top-left entry in the newest frame (the last
     ``frame_channels`` channels) of uint8 observations ``(N, H, W, C)``: on a grid its own plane (the
@@ -80,7 +87,7 @@ def leader_entry(obs: torch.Tensor, frame_channels: int, screens: bool) -> torch
         mask = (blue > 127) & (red < 128) & (green < 128)
     else:
         mask = newest[..., -1] > 0  # GRID_PLANES: destination, obstacles, followers, leader
-    return mask.reshape(obs.shape[0], -1).float().argmax(1)
+    return first_entry(mask)[0]
 
 
 def destination_entry(obs: torch.Tensor, frame_channels: int, screens: bool) -> tuple[torch.Tensor, torch.Tensor]:
@@ -92,8 +99,7 @@ def destination_entry(obs: torch.Tensor, frame_channels: int, screens: bool) -> 
         mask = (newest > 127).all(-1)
     else:
         mask = newest[..., 0] > 0  # GRID_PLANES: destination, obstacles, followers, leader
-    mask = mask.reshape(obs.shape[0], -1)
-    return mask.float().argmax(1), mask.any(1)
+    return first_entry(mask)
 
 
 class LeaderWindow(nn.Module):
