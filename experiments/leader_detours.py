@@ -1,4 +1,4 @@
-"""Where a team's successes lose steps against the planner (docs/RESULTS.md, "What holds settings 3-4 back"):
+"""Where a team's successes lose steps against the planner (docs/RESULTS.md, "One command per setting"):
 the leader's waits, its moves along row 0 (sliding sideways to the destination), and its column offset from
 the destination as it first reaches some rows, over the successes of the first N validation scenarios.
 
@@ -12,7 +12,7 @@ import numpy as np
 from formation.evaluate import play_greedy
 from formation.policy import load
 
-STAY = 3  # the spec's action S
+STAY = 3  # the action S (docs/GAME.md, 'Actions')
 VALIDATION_SEED = 3_000_000
 
 

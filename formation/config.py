@@ -1,4 +1,4 @@
-"""The game's configuration: one typed, validated object (rules in ``shared/spec/GAME.md``).
+"""The game's configuration: one typed, validated object (rules in ``docs/GAME.md``).
 
 ``GameConfig.from_setting(1, n_followers=2)`` builds one of the paper's four named settings
 with overrides. Every bad value raises ``ConfigError`` with a one-line message naming the
@@ -50,9 +50,9 @@ class GameConfig:
     d_max: float = 4.0  # and nearer than d_max
     max_steps: int = 200  # steps before an episode is truncated
     n_followers: int = 1  # followers beside the leader
-    # the leader's start cell; null: the spec's default for the formation and follower count
+    # the leader's start cell; null: the rules' default for the formation and follower count (docs/GAME.md)
     leader_start: tuple[int, int] | None = None
-    follower_starts: tuple[tuple[int, int], ...] | None = None  # the followers' start cells; null: the spec's
+    follower_starts: tuple[tuple[int, int], ...] | None = None  # the followers' start cells; null: the rules' default
     obstacle_speeds: tuple[int, ...] = (1, 2)  # the speeds (cells a step) an obstacle is drawn with
     # the paper's comprehensive reward, its weights as config values: each agent's when the leader reaches the
     # destination with the formation kept
@@ -114,7 +114,7 @@ class GameConfig:
 
     @property
     def obstacle_band(self) -> tuple[int, int]:
-        """The spec's rows ``[lo, hi)`` for random obstacles."""
+        """The obstacle band's rows ``[lo, hi)`` for random obstacles (docs/GAME.md, 'Entities')."""
         return (self.height // 5, self.height - self.height // 5)
 
     @property
@@ -147,7 +147,7 @@ class GameConfig:
 
     @property
     def starts(self) -> tuple[tuple[int, int], tuple[tuple[int, int], ...]]:
-        """(leader start, follower starts), the config's own or the spec's defaults."""
+        """(leader start, follower starts), the config's own or the default starts (docs/GAME.md, 'Entities')."""
         default_leader, default_followers = (None, None)
         if self.leader_start is None or self.follower_starts is None:
             default_leader, default_followers = self.default_starts()
@@ -217,7 +217,7 @@ class GameConfig:
 
 
 def formation_broken_by(config: GameConfig, leader, followers) -> str:
-    """Why these cells break the formation, or '' when it is kept (spec rule 4)."""
+    """Why these cells break the formation, or '' when it is kept (docs/GAME.md, 'One step', rule 4)."""
     for i, f in enumerate(followers):
         d = math.dist(leader, f)
         if not config.formation_kept(d):

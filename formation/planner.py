@@ -3,7 +3,8 @@
 The obstacles move on their own, whatever the leader and followers do, so the whole future of
 the board is known at reset. For every step ``t`` the *collision zone* ``Z_t`` is the set of
 cells within distance <= 1 of any cell an obstacle reached after one of its unit sub-steps of
-step ``t`` (spec rules 2-3); an agent collides at step ``t`` exactly when it stands in ``Z_t``.
+step ``t`` (docs/GAME.md, 'One step', rules 2-3); an agent collides at step ``t`` exactly when it
+stands in ``Z_t``.
 The zones come from the game itself: the scenario is loaded into a ``BatchedGame`` and
 ``sweep_obstacles`` is run once per step, so the obstacle motion exists in one place only.
 
@@ -467,7 +468,7 @@ class _Board:
         H, W = config.height, config.width
         self.height, self.width = H, W
         self.row, self.col = np.divmod(np.arange(H * W, dtype=np.int32), W)
-        # next_cell[cell, action]: where an agent lands, clamped to the board (spec 'Actions').
+        # next_cell[cell, action]: where an agent lands, clamped to the board (docs/GAME.md, 'Actions').
         rows = np.clip(self.row[:, None] + MOVES[:, 0], 0, H - 1)
         cols = np.clip(self.col[:, None] + MOVES[:, 1], 0, W - 1)
         self.next_cell = (rows * W + cols).astype(np.int32)

@@ -5,13 +5,13 @@ move the networks like best among the safe ones.
 The shield acts from the same observation as the networks (the stacked screens or grids) and knows
 only the game's rules. It reads the state off the two newest frames (``read_states``): the cells of
 the leader, the follower and the obstacles, and each obstacle's velocity from where it was one frame
-before, under the spec's rule of motion (an obstacle bounces between columns 0 and W-1 like a ball,
-a constant motion on a circle of 2(W-1) places folded in two). Where a frame does not tell a velocity
-(an episode's first screen, repeated in the stack; a row holding more than one obstacle), every
-velocity of the config's speeds is a reading of its own. Each reading becomes a scenario, and the
-planner (``surviving_first_moves_many``, which steps obstacles with the game itself) lists the joint
-moves that start ``horizon`` steps free of failure; a move is safe when it is on that list for the
-most readings. This is "shielding" (Alshiekh et al. 2018, "Safe reinforcement learning via
+before, under the game's rule of motion (docs/GAME.md, 'One step': an obstacle bounces between columns
+0 and W-1 like a ball, a constant motion on a circle of 2(W-1) places folded in two). Where a frame
+does not tell a velocity (an episode's first screen, repeated in the stack; a row holding more than
+one obstacle), every velocity of the config's speeds is a reading of its own. Each reading becomes
+a scenario, and the planner (``surviving_first_moves_many``, which steps obstacles with the game
+itself) lists the joint moves that start ``horizon`` steps free of failure; a move is safe when it
+is on that list for the most readings. This is "shielding" (Alshiekh et al. 2018, "Safe reinforcement learning via
 shielding"): the networks still choose where the team goes; the shield only vetoes moves that are
 already lost. It is not part of the paper's method (docs/RESULTS.md reports the team with and
 without it).

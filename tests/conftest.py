@@ -1,6 +1,6 @@
-"""Shared helpers for the game tests: a plain-Python reading of the rules in ``shared/spec/GAME.md``.
+"""Shared helpers for the game tests: a plain-Python reading of the rules in ``docs/GAME.md``.
 
-The reference below is written from the spec alone, one entity at a time, so that it can be
+The reference below is written from that page alone, one entity at a time, so that it can be
 checked against ``BatchedGame`` (the only implementation of the rules) step for step.
 """
 
@@ -21,7 +21,7 @@ import pytest
 # beside a training run). Set before torch loads; Ray's workers and the CLI subprocesses inherit it.
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-# Action indices (spec 'Actions').
+# Action indices (docs/GAME.md, 'Actions').
 F, FL, FR, S = 0, 1, 2, 3
 SPEC_MOVES = {F: (-1, 0), FL: (-1, -1), FR: (-1, 1), S: (0, 0)}
 
@@ -40,7 +40,7 @@ class RefOutcome:
 
 
 def reference_step(config, positions, obstacles, actions, steps_before: int) -> RefOutcome:
-    """One step of the spec's rules, written out literally."""
+    """One step of the rules (docs/GAME.md, 'One step'), written out literally."""
     H, W = config.height, config.width
     # 1. Both agents move at once, clamped.
     new = []
@@ -82,7 +82,7 @@ def reference_step(config, positions, obstacles, actions, steps_before: int) -> 
 
 @pytest.fixture(scope="session")
 def reference():
-    """The spec's rules in plain Python (see ``reference_step``)."""
+    """The rules in plain Python (see ``reference_step``)."""
     return reference_step
 
 

@@ -12,7 +12,7 @@ import formation.env.pettingzoo as pettingzoo_card
 from formation.config import GameConfig
 from formation.game import BatchedGame, GridRenderer, Observer, ScreenRenderer
 
-# PettingZoo recommends names like "player_0"; the spec fixes "leader" and "follower".
+# PettingZoo recommends names like "player_0"; the rules fix "leader" and "follower".
 NAMING = "ignore:We recommend agents to be named"
 
 
@@ -75,7 +75,7 @@ def test_state_space_is_one_frame_of_the_observation():
 
 
 def _spec_screen(scenario: dict, H: int, W: int) -> np.ndarray:
-    """The spec's screen drawn directly from its formula (GAME.md, 'Screen'), independent of the renderer."""
+    """The screen drawn straight from its formula (docs/GAME.md, 'Screen (observation)'), not by the renderer."""
     screen = np.zeros((84, 84, 3), np.uint8)
 
     def paint(r, c, colour):

@@ -1,4 +1,4 @@
-"""Property tests: random boards, scenarios and action sequences against the spec's rules."""
+"""Property tests: random boards, scenarios and action sequences against the rules (docs/GAME.md)."""
 
 from __future__ import annotations
 
@@ -93,7 +93,7 @@ def test_hand_drawn_scenarios_follow_the_rules(data, reference):
         assert bool(game.terminated[0]) == want.terminated
         assert bool(game.truncated[0]) == want.truncated
         assert bool(game.success[0]) == want.success
-        # The episode ends exactly when the spec says, and never runs past max_steps.
+        # The episode ends exactly when the rules say, and never runs past max_steps.
         assert bool(game.done[0]) == (want.terminated or t + 1 >= config.max_steps)
         assert int(game.steps[0]) == t + 1 <= config.max_steps
         if game.done[0]:

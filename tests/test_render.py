@@ -1,4 +1,4 @@
-"""The screen, the grid planes and the frame stack (spec 'Screen (observation)')."""
+"""The screen, the grid planes and the frame stack (docs/GAME.md, 'Screen (observation)')."""
 
 from __future__ import annotations
 
@@ -15,12 +15,12 @@ BLACK, WHITE, RED, GREEN, BLUE = (0, 0, 0), (255, 255, 255), (255, 0, 0), (0, 25
 
 
 def span(i, n):
-    """Spec: cell i of n covers pixels [(168*i + n) // (2*n), (168*(i+1) + n) // (2*n))."""
+    """GAME.md: cell i of n covers pixels [(168*i + n) // (2*n), (168*(i+1) + n) // (2*n))."""
     return (168 * i + n) // (2 * n), (168 * (i + 1) + n) // (2 * n)
 
 
 def paint(config, destination, obstacles, followers, leader):
-    """The expected screen, painted cell by cell in the spec's draw order."""
+    """The expected screen, painted cell by cell in the rules' draw order."""
     img = np.zeros((84, 84, 3), np.uint8)
     H, W = config.height, config.width
 
@@ -83,7 +83,7 @@ def test_screen_colours_and_cells(setting):
     obs, _ = env.reset(seed=setting)
     screen = obs["leader"]
     np.testing.assert_array_equal(screen, expected_screen(env.game))
-    # Every colour of the spec appears, and nothing else.
+    # Every colour of the rules appears, and nothing else.
     colours = {tuple(c) for c in screen.reshape(-1, 3).tolist()}
     assert colours == {BLACK, WHITE, RED, GREEN, BLUE}
     # And again after some steps (the old cells are erased).
@@ -242,7 +242,7 @@ def test_frame_stack_repeats_then_oldest_first(obs_type, k):
 
 
 def paint_grid(game, i=0):
-    """The expected grid planes, from the spec's entity kinds."""
+    """The expected grid planes, from the rules' entity kinds."""
     s = game.scenario(i)
     grid = np.zeros((game.config.height, game.config.width, 4), np.uint8)
     grid[(*game.config.destination, 0)] = 1

@@ -1,4 +1,4 @@
-"""Each rule of ``shared/spec/GAME.md`` on hand-built scenarios.
+"""Each rule of ``docs/GAME.md`` on hand-built scenarios.
 
 Setting 1 is a 25x25 board: destination (0, 12), c0 = 12 - 5 = 7, obstacle band rows [5, 20).
 """

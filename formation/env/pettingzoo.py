@@ -14,7 +14,7 @@
 | state shape | ``(84, 84, 3)``: the present screen; with ``obs_type="grid"``: ``(H, W, 4)``, the present grid |
 | state values | ``uint8`` in ``[0, 255]``; grid: ``[0, 1]`` |
 | render modes | ``None``, ``"rgb_array"`` (the present screen whatever the observation type) |
-| rules | ``shared/spec/GAME.md`` |
+| rules | ``docs/GAME.md`` (rules v1) |
 
 Every agent observes the same full screen. ``state()`` is the global state as one frame of the
 observation type, unstacked: the screen the renderer draws for the present game (pixels), or its
@@ -33,8 +33,8 @@ distance to the leader; the leader's is the distance to its farthest follower), 
 ``success``, ``steps``.
 
 Version history:
-* v1: ``state()`` and ``state_space`` (the present screen or grid); the same game (spec v1).
-* v0: initial release, spec v1.
+* v1: ``state()`` and ``state_space`` (the present screen or grid); the same game (rules v1).
+* v0: initial release, rules v1.
 """
 
 from __future__ import annotations

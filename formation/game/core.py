@@ -1,4 +1,4 @@
-"""The rules of the formation game (``shared/spec/GAME.md``), stepping a batch of games at once.
+"""The rules of the formation game (``docs/GAME.md``, rules v1), stepping a batch of games at once.
 
 This is the only implementation of the rules: the PettingZoo and RLlib views, the planner's
 checks and the training rollouts all step this class. State and per-step results live in numpy
@@ -105,7 +105,7 @@ class BatchedGame:
         self._moving = [self.obstacle_speeds > s for s in range(top)]
 
     def reset(self, seed: int | None = None, mask: np.ndarray | None = None) -> None:
-        """Start random games (spec 'Entities') in the games where ``mask`` is True (all if None)."""
+        """Start random games (docs/GAME.md, 'Entities') in the games where ``mask`` is True (all if None)."""
         if seed is not None:
             self.rng = np.random.default_rng(seed)
         if self.n_obstacles != self.config.n_obstacles:
@@ -171,7 +171,7 @@ class BatchedGame:
 
     # ------------------------------------------------------------------ the rules
     def step(self, actions: np.ndarray) -> None:
-        """Apply one joint action per game, ``actions`` (B, 1+k) ints in 0..3 (spec 'One step')."""
+        """Apply one joint action per game, ``actions`` (B, 1+k) ints in 0..3 (docs/GAME.md, 'One step')."""
         pos = self.positions
         # 1. Both agents move at once, clamped to the board.
         np.take(MOVES, actions, axis=0, out=self._move)

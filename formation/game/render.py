@@ -67,7 +67,7 @@ class _EntityCells:
 
 
 class ScreenRenderer:
-    """Draws the 84x84x3 uint8 screens of a whole batch (spec 'Screen')."""
+    """Draws the 84x84x3 uint8 screens of a whole batch (docs/GAME.md, 'Screen (observation)')."""
 
     def __init__(self, game: BatchedGame):
         cfg: GameConfig = game.config
@@ -140,9 +140,9 @@ class GridRenderer:
 class FrameStack:
     """The last k frames of each game along the channel axis, oldest first.
 
-    At a reset the stack is the first frame repeated (spec 'Screen'). Two frames differ only
-    where either of them has an entity drawn, so each push copies just those rows (the renderer's
-    ``drawn_rows``) from one slot to the next instead of shifting whole screens.
+    At a reset the stack is the first frame repeated (docs/GAME.md, 'Screen (observation)'). Two
+    frames differ only where either of them has an entity drawn, so each push copies just those rows
+    (the renderer's ``drawn_rows``) from one slot to the next instead of shifting whole screens.
     """
 
     def __init__(self, batch_size: int, frame_shape: tuple[int, ...], k: int):
