@@ -62,7 +62,7 @@ def main() -> None:
     agents = module_of_agent(run)
     learner = config.build_learner(spaces={m: spaces_of(run) for m in set(agents)})
     learner.set_replays([], agents, [m for m in set(agents) if answers_leader(run, m)],
-                        run.train.safety_head)
+                        run.safety_head)
     device = next(learner.module[agents[0]].parameters()).device
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu, one thread per module"
     print(f"{args.config}: learner on {name}; {replay.size} records in the replay")

@@ -1,4 +1,4 @@
-"""Cost of a safety head's labels (``train.safety_horizon``, ``formation.recipe.teacher.safety_labels``), which a
+"""Cost of a safety head's labels (``teacher.safety_horizon``, ``formation.recipe.teacher.safety_labels``), which a
 rollout actor computes for its 16 games on every step.
 
 Run: ``.venv/bin/python benchmarks/safety_labels.py [n_steps]`` (default 20 steps of 16 games per setting).

@@ -4,7 +4,7 @@ Run: ``.venv/bin/python benchmarks/teacher_rollout.py [n_steps] [settings]`` (de
 in settings 1,3; e.g. ``... 100 1,2,3,4``; under a minute on one core).
 
 Each setting's ``GameRollout`` of 16 games is played by a stand-in for a learner: the first half of the
-games follow the teacher's labels (``train.demonstrations`` 0.5), the others take the label's leader move
+games follow the teacher's labels (``teacher.demonstrations`` 0.5), the others take the label's leader move
 (a random one with probability ``EPSILON``) and the teacher's answer to it for the followers (a random
 joint move with probability ``EPSILON``), so the states include episodes' first steps and states off the
 shortest path. Every step makes the calls of the setting's config in the rollout actor's order:

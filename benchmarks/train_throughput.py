@@ -33,7 +33,7 @@ from formation.rllib.algorithm import build_algorithm_config  # noqa: E402
 
 BASE = {"game": {"setting": 1, "obs_type": "pixels", "frame_stack": 4},
         # the paper's reward and plain epsilon-greedy on both paths: RLlib's stock DQN has no teacher
-        "train": {"shaping": 0.0, "demonstrations": 0.0, "margin": 0.0, "dagger": False, "prioritized": False,
+        "train": {"shaping": 0.0, "reward_formation_kept": None, "team_reward": False, "prioritized": False,
                   "exploration": "independent", "follower_answers_leader": False,
                   # configs/paper.yaml's network (the figures in docs/BENCHMARKS.md were taken with it)
                   "leader_window": None, "channels": (16, 32, 32), "hidden": 128,

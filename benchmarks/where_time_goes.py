@@ -94,7 +94,7 @@ def alone(run: RunConfig, env_steps: int, trained: dict) -> dict:
     learner.module_threads = False  # one module after the other: its seconds are CPU seconds
     agents = module_of_agent(run)
     learner.set_replays([], agents, [m for m in set(agents) if answers_leader(run, m)],
-                        run.train.safety_head)
+                        run.safety_head)
     updates = max(1, round(run.train.replay_ratio * done))
     t = run.train
     for i in range(updates + 3):

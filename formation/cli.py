@@ -90,12 +90,35 @@ def cmd_train(args: argparse.Namespace) -> int:
     """Train from a config; checkpoints and metrics go to --out."""
     from formation.train import train
 
+    if args.no_ray:
+        return _train_without_ray(args)
     if not args.resume and (args.out or args.config) and not is_uri(args.out or ""):
         _check_new_run_folder(Path(args.out) if args.out else Path("runs") / Path(args.config).stem)
     try:
         train(args.config, args.out, resume=args.resume, overrides=parse_overrides(args.set))
     except KeyboardInterrupt:
         return 130
+    return 0
+
+
+def _train_without_ray(args: argparse.Namespace) -> int:
+    """``formation train --no-ray``: the recipe's single-process loop (``formation.recipe.loop``)."""
+    from formation.recipe.config import RunConfig
+    from formation.recipe.loop import train
+
+    if args.resume:
+        raise ConfigError("--resume: a --no-ray run keeps no checkpoint; allowed: --resume without --no-ray")
+    if args.config is None:
+        raise ConfigError("config: give a config file, e.g. configs/quickstart.yaml")
+    if is_uri(args.out or ""):
+        raise ConfigError(f"--out: {args.out!r}: a --no-ray run writes a local folder; allowed: a local path")
+    run = RunConfig.load(args.config, parse_overrides(args.set))
+    out = check_new_folder(Path(args.out) if args.out else Path("runs") / Path(args.config).stem, "--out")
+    try:
+        summary = train(run, out, say=lambda line: print(line, flush=True))
+    except KeyboardInterrupt:
+        return 130
+    print(f"greedy success {summary['success']:.1%} on {summary['episodes']} held-out scenarios; run folder {out}")
     return 0
 
 
@@ -323,6 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     train.add_argument("--out", help="run folder, or a storage URI such as s3://bucket/runs/s1 "
                                       "(default runs/<config name>)")
     train.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    train.add_argument("--no-ray", action="store_true",
+                       help="train in this one process, without Ray (formation.recipe.loop): no checkpoints")
     train.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                        help="override a config value, e.g. --set train.gamma=0.99")
     train.set_defaults(run=cmd_train)

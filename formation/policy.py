@@ -76,7 +76,7 @@ class Policy:
         # greedy play keeps to the joint moves whose mean safe probability is above this (``within_veto``)
         self.veto_threshold = DEFAULT_VETO_THRESHOLD
         self.veto_fallback = VETO_FALLBACKS[0]  # where no joint move is above it (``within_veto``)
-        # networks with a safety head (train.safety_horizon) keep greedy play to the joint moves it judges safe
+        # networks with a safety head (teacher.safety_horizon) keep greedy play to the joint moves it judges safe
         self.learned_veto = any(net.safety is not None for net in networks.values())
         for net in networks.values():
             net.eval()

@@ -263,7 +263,8 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         writer.close()
         algo.stop()
     if not quiet:
-        progress.show(algo.counters["env_steps"], summary["success"], 0.0, final=True)
+        rate = (algo.counters["env_steps"] - at_start["env_steps"]) / max(time.perf_counter() - started, 1e-9)
+        progress.show(algo.counters["env_steps"], summary["success"], rate, final=True)
     if run.refit.rounds:  # after Ray has stopped, so that the refit's planner workers have the cores
         summary = refit_phase(out_dir, run, say=(lambda line: None) if quiet else
                               (lambda line: print(line, flush=True)))

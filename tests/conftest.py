@@ -125,6 +125,7 @@ def smoke_run(tmp_path_factory, worker_id):
         if not (out / "result.json").is_file():
             done = run_cli("train", "configs/smoke.yaml", "--out", str(out))
             assert done.returncode == 0, done.stderr[-3000:]
+            (root / "smoke-run.stdout").write_text(done.stdout)  # what the user saw (tests/test_cli.py)
     return out
 
 
@@ -143,6 +144,22 @@ def cluster():
 def worker_id(request):
     """pytest-xdist's worker name ("gw0", ...), or "master" without xdist (xdist's own fixture, when it runs)."""
     return getattr(request.config, "workerinput", {}).get("workerid", "master")
+
+
+@pytest.fixture
+def collector():
+    """Makes the recipe's ``Collector`` of the smoke config with the given overrides, and its team's networks."""
+    from formation.recipe.collect import Collector
+    from formation.recipe.config import RunConfig
+    from formation.recipe.team import network_specs
+
+    def make(overrides: dict):
+        run = RunConfig.load("configs/smoke.yaml", overrides)
+        torch = pytest.importorskip("torch")
+        torch.manual_seed(0)
+        return Collector(run), {m: spec.build() for m, spec in network_specs(run).items()}
+
+    return make
 
 
 @pytest.fixture

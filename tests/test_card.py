@@ -55,7 +55,7 @@ def test_evaluate_says_in_one_line_how_the_policy_was_trained(team, capsys):
     lines = capsys.readouterr().out.splitlines()
     assert re.fullmatch(r"trained: \d{1,3}(,\d{3})* env steps in \d+\.\d (min|h) on .+ \(\d+ CPUs\), "
                         r"(no GPU|.+ x\d+), 1 Ray node; commit ([0-9a-f]{12}(-dirty)?|unknown); "
-                        r"the planner's labels \(train\.dagger, train\.demonstrations\)", lines[1]), lines[1]
+                        r"from the reward alone, no planner", lines[1]), lines[1]
 
 
 def test_old_cards_load_without_a_training_section_and_evaluate_as_before(capsys, tmp_path):
@@ -92,10 +92,10 @@ def test_a_run_from_before_the_training_record_still_says_what_it_knows(smoke_ru
     assert training["learner_updates"] > 0
     assert (training["wall_seconds"], training["hardware"], training["commit"]) == (None, None, "unknown")
     assert training_line(training) == (f"trained: {result['env_steps']:,} env steps in unrecorded time on "
-                                       "unrecorded hardware; commit unknown; the planner's labels (train.dagger, "
-                                       "train.demonstrations)")
-    reward_only = RunConfig.load("configs/reward_only/setting1.yaml").to_dict()  # as a run saves it: every key
-    assert training_line({**training, "config": reward_only}).endswith("; from the reward alone, no planner")
+                                       "unrecorded hardware; commit unknown; from the reward alone, no planner")
+    taught = RunConfig.load("configs/setting1.yaml").to_dict()  # as a run saves it: every key
+    assert training_line({**training, "config": taught}).endswith(
+        "; the planner's labels (teacher, teacher.demonstrations, teacher.safety_horizon, refit.rounds)")
 
 
 def test_a_result_older_than_the_checkpoint_is_not_its_report(smoke_run, tmp_path):

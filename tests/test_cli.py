@@ -78,3 +78,18 @@ def test_the_benchmarks_lists_of_sizes_are_whole_numbers_above_zero():
     for bad in ("", "0", "1,x", "2.5", "-1"):
         with pytest.raises(argparse.ArgumentTypeError, match="allowed: whole numbers above 0"):
             counts(bad)
+
+
+def test_the_progress_line_that_ends_a_run_gives_its_speed(smoke_run):
+    """Not "0 steps/s": the closing line has the whole run's env steps per second."""
+    lines = (smoke_run.parent / "smoke-run.stdout").read_text().splitlines()
+    last = [line for line in lines if "env steps" in line][-1]
+    assert last.split()[-1] == "steps/s" and float(last.split()[-2].replace(",", "")) > 0, last
+
+
+def test_train_no_ray_refuses_what_it_cannot_do_in_one_line(tmp_path, capsys):
+    for args, words in ((["--resume"], "--resume: a --no-ray run keeps no checkpoint"),
+                        (["--out", "s3://bucket/run"], "--out: 's3://bucket/run': a --no-ray run writes a local")):
+        assert main(["train", "configs/smoke.yaml", "--no-ray", *args]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and words in err, err

@@ -260,7 +260,7 @@ def test_the_learner_updates_alike_on_a_batch_of_cells_and_on_the_screens_they_c
     from formation.recipe.team import answers_leader, module_of_agent, reads_cells, replay_frame_shape, spaces_of
     from formation.rllib.algorithm import build_algorithm_config
 
-    run = RunConfig.load("configs/smoke.yaml", {"game.obs_type": "pixels", "train.safety_horizon": 4})
+    run = RunConfig.load("configs/smoke.yaml", {"game.obs_type": "pixels", "teacher.safety_horizon": 4})
     assert reads_cells(run) and run.train.prioritized
     board, k = (run.game.height, run.game.width), run.game.frame_stack
     # the same games into a replay of cells and one of whole screens: equal draws, equal ids

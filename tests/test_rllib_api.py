@@ -35,7 +35,8 @@ def test_the_config_built_from_a_run_is_that_run():
 
 
 def test_rllib_setters_set_the_run_config_that_rollout_actors_and_the_learner_read():
-    from formation.rllib.rollout_actor import RolloutActor, epsilon_at
+    from formation.recipe.collect import epsilon_at
+    from formation.rllib.rollout_actor import RolloutActor
 
     config = (smoke_config()
               .training(n_step=7, gamma=0.5, lr=0.123, train_batch_size=16, target_network_update_freq=9,
@@ -97,8 +98,8 @@ def test_tunes_round_trip_through_a_dict_keeps_the_run():
 
 
 def test_the_stock_path_keeps_rllibs_dqn_and_the_same_source_of_truth():
-    stock = {"train.path": "stock", "train.shaping": 0, "train.demonstrations": 0, "train.margin": 0,
-             "train.prioritized": False, "train.dagger": False, "train.follower_answers_leader": False}
+    stock = {"train.path": "stock", "train.shaping": 0, "train.reward_formation_kept": None, "train.team_reward": False,
+             "train.prioritized": False, "train.follower_answers_leader": False}
     config = smoke_config(**stock)
     assert config.run == RunConfig.load(SMOKE, stock)
     config.training(lr=0.01, double_q=False)  # RLlib's own DQN honours both
@@ -241,18 +242,18 @@ def test_a_rollout_actor_acts_on_whole_screens_and_pushes_only_their_cells(rollo
     assert replay_frame_shape(run) == rollout.frame_shape == (*board, 3)
     pushed, shown, acted_on = [], [], []
     actor.set_replay(SimpleNamespace(add=SimpleNamespace(remote=pushed.append)))
-    step, act = rollout.step, actor._actions
+    step, act = rollout.step, actor.collector.actions
 
     def watched_step(*args, **kwargs):
         shown.append(rollout.observer.renderer.screens.copy())  # the screens of the state the step leaves
         return step(*args, **kwargs)
 
-    def watched_actions(observations):
-        acted_on.append(observations.shape)
-        return act(observations)
+    def watched_actions(networks, env_steps):
+        acted_on.append(rollout.observations.shape)
+        return act(networks, env_steps)
 
     monkeypatch.setattr(rollout, "step", watched_step)
-    monkeypatch.setattr(actor, "_actions", watched_actions)
+    monkeypatch.setattr(actor.collector, "actions", watched_actions)
     actor.sample()
     screen = actor.module["leader"].observation_space.shape
     assert screen == (84, 84, 3 * run.game.frame_stack) and acted_on == [(len(shown[0]), *screen)] * 3
@@ -266,3 +267,21 @@ def test_a_rollout_actor_acts_on_whole_screens_and_pushes_only_their_cells(rollo
     for i, screens in enumerate(shown):
         np.testing.assert_array_equal(chunk.frames[starts[i * games:(i + 1) * games]],
                                       reader(torch.from_numpy(screens)).numpy())
+
+
+# --------------------------------------------------------------------------- RLlib's own restore
+def test_rllibs_from_checkpoint_restores_a_run_that_evaluates_as_the_run_did(cluster, smoke_run):
+    """``FormationDQN.from_checkpoint`` (RLlib's ``Algorithm.from_checkpoint``) of a run folder's checkpoint: the
+    run's config, counters and weights, so its greedy evaluation is the one the run wrote (the same scenarios)."""
+    import json
+
+    from formation.rllib.algorithm import FormationDQN
+
+    result = json.loads((smoke_run / "result.json").read_text())
+    algo = FormationDQN.from_checkpoint(str(smoke_run / "checkpoint"))
+    try:
+        assert algo.run == RunConfig.load_saved(smoke_run / "config.yaml")
+        assert algo.counters["env_steps"] == result["env_steps"]
+        assert algo.evaluate_greedy()["success"] == result["greedy"]["success"]
+    finally:
+        algo.stop()

@@ -1,4 +1,4 @@
-"""A safety head learnt beside the Q-values (``train.safety_horizon``): the planner labels every visited
+"""A safety head learnt beside the Q-values (``teacher.safety_horizon``): the planner labels every visited
 state with the joint moves that start safe steps, the labels travel through the replay
 to the learner, which fits the head, and greedy play keeps to the joint moves the head judges safe."""
 
@@ -24,12 +24,12 @@ SMOKE = "configs/smoke.yaml"
 
 
 @pytest.mark.parametrize("key,value,message", [
-    ("train.safety_horizon", -1, "train.safety_horizon: -1 is not allowed; allowed: an integer >= 0"),
-    ("train.safety_horizon", "path", "train.safety_horizon: 'path' is not allowed; allowed: an integer >= 0"),
-    ("train.safety_weight", -0.5, "train.safety_weight: -0.5 is not allowed; allowed: a number in [0.0, inf]"),
-    ("train.safety_encoder", True, "train.safety_encoder: true needs train.safety_horizon other than 0; "
+    ("teacher.safety_horizon", -1, "teacher.safety_horizon: -1 is not allowed; allowed: an integer >= 0"),
+    ("teacher.safety_horizon", "path", "teacher.safety_horizon: 'path' is not allowed; allowed: an integer >= 0"),
+    ("teacher.safety_weight", -0.5, "teacher.safety_weight: -0.5 is not allowed; allowed: a number in [0.0, inf]"),
+    ("teacher.safety_encoder", True, "teacher.safety_encoder: true needs teacher.safety_horizon other than 0; "
                                    "allowed: false"),
-    ("train.safety_encoder", "own", "train.safety_encoder: 'own' is not allowed; allowed: true, false"),
+    ("teacher.safety_encoder", "own", "teacher.safety_encoder: 'own' is not allowed; allowed: true, false"),
 ])
 def test_a_bad_safety_setting_is_one_line(key, value, message):
     with pytest.raises(ConfigError) as err:
@@ -38,8 +38,8 @@ def test_a_bad_safety_setting_is_one_line(key, value, message):
 
 
 def test_a_safety_head_needs_one_follower():
-    with pytest.raises(ConfigError, match=r"train.safety_horizon: 2 needs game.n_followers: 1 \(not 2\)"):
-        RunConfig.load(SMOKE, {"train.safety_horizon": 2, "game.n_followers": 2, "game.width": 12,
+    with pytest.raises(ConfigError, match=r"teacher.safety_horizon: 2 needs game.n_followers: 1 \(not 2\)"):
+        RunConfig.load(SMOKE, {"teacher.safety_horizon": 2, "game.n_followers": 2, "game.width": 12,
                                "train.follower_answers_leader": False})
 
 
@@ -84,7 +84,7 @@ def test_training_and_exports_build_the_head_with_its_encoder(tmp_path):
     from formation.recipe.team import module_of_agent, network_specs
     from formation.rllib.algorithm import module_specs
 
-    run = RunConfig.load(SMOKE, {"train.safety_horizon": 2, "train.safety_encoder": True})
+    run = RunConfig.load(SMOKE, {"teacher.safety_horizon": 2, "teacher.safety_encoder": True})
     specs, agent_modules = network_specs(run), module_of_agent(run)
     for module, spec in module_specs(run).items():
         trained = spec.build().q_network

@@ -99,7 +99,7 @@ def test_training_fits_the_safety_heads_through_ray_and_ends_with_the_refit_phas
 
     out = tmp_path / "run"
     summary = train(SMOKE, str(out), quiet=True, overrides={
-        "train.safety_horizon": 2, "train.safety_encoder": True, "train.total_env_steps": 2000,
+        "teacher.safety_horizon": 2, "teacher.safety_encoder": True, "train.total_env_steps": 2000,
         "eval.every_env_steps": 2000, "refit.rounds": 1, "refit.episodes": 30, "refit.horizon": 2,
         "refit.holdout_episodes": 10, "refit.workers": 1})
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
@@ -141,7 +141,7 @@ def test_training_fits_the_safety_heads_through_ray_and_ends_with_the_refit_phas
                                       (2_000_002, False), (10_000_000, False)])
 def test_a_refit_never_plays_the_evaluations_scenarios(seed, bad):
     # 5 rounds of 1000 games take seeds seed..seed+4, the 300 held-out games seed-1: none may be 2e6 (the test set)
-    overrides = {"refit.seed": seed, "refit.rounds": 5, "refit.episodes": 1000, "train.safety_horizon": 4}
+    overrides = {"refit.seed": seed, "refit.rounds": 5, "refit.episodes": 1000, "teacher.safety_horizon": 4}
     if bad:
         with pytest.raises(ConfigError, match=rf"^refit\.seed: {seed} is not allowed; its games would use seeds "
                                               rf"{seed - 1}\.\.{seed + 4}, which hold the evaluations' scenarios"):
@@ -333,7 +333,7 @@ def test_the_command_takes_its_settings_from_a_run_folders_refit_section(tmp_pat
     from formation.policy import RL_MODULES
     from formation.recipe.team import network_specs
 
-    run = RunConfig.load(SMOKE, {"train.safety_horizon": 2, "train.safety_encoder": True, "refit.rounds": 1,
+    run = RunConfig.load(SMOKE, {"teacher.safety_horizon": 2, "teacher.safety_encoder": True, "refit.rounds": 1,
                                  "refit.episodes": 30, "refit.horizon": 2, "refit.holdout_episodes": 10,
                                  "refit.workers": 1})
     folder = tmp_path / "run"

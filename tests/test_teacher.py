@@ -136,15 +136,15 @@ def ended(scenario, joint) -> bool:
     return bool(game.done[0] and not game.success[0])
 
 
-def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_it_plays(rollout_actor):
-    actor = rollout_actor({"train.follower_answers_leader": True, "train.epsilon_start": 0.5,
-                                                "train.epsilon_end": 0.5})
-    game, teacher = actor.rollout.game, actor._teacher
+def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_it_plays(collector):
+    actor, networks = collector({"train.follower_answers_leader": True, "train.epsilon_start": 0.5,
+                                 "train.epsilon_end": 0.5, "teacher.margin": 5.0})
+    game, teacher = actor.rollout.game, actor.teacher
     obs = actor.rollout.observations
-    actions = actor._actions(obs)
+    actions = actor.actions(networks, env_steps=0)
     with torch.no_grad():
-        leader_q = actor.module["leader"].q_network(torch.from_numpy(obs)).numpy()
-        follower_q = actor.module["follower"].q_network(torch.from_numpy(obs)).numpy().reshape(-1, 4, 4)
+        leader_q = networks["leader"](torch.from_numpy(obs)).numpy()
+        follower_q = networks["follower"](torch.from_numpy(obs)).numpy().reshape(-1, 4, 4)
     assert follower_q.shape[0] == len(obs)
     rows = np.arange(len(obs))
     assert (actions[:, 1] == follower_q[rows, actions[:, 0]].argmax(1)).all()  # the answer to the move played
@@ -154,7 +154,7 @@ def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_
     joints = actor._teacher_joints()
     played = np.array([[((j[0] + 1) % 4) if j[0] >= 0 else 0, 0] for j in joints])
     labels, answers = actor._labels(joints, played)
-    assert answers is None  # train.answer_every_leader_move is off
+    assert answers is None  # teacher.answer_every_leader_move is off
     for i in range(game.batch_size):
         joint = teacher.label(game.scenario(i))
         if joint is None:
@@ -165,10 +165,9 @@ def test_followers_that_answer_the_leader_play_and_learn_the_answer_to_the_move_
         assert labels[i, 1] == (answer[1] if answer is not None else -1)
 
 
-def test_with_answer_every_leader_move_a_follower_learns_its_answer_to_each_move_the_leader_could_make(rollout_actor):
-    actor = rollout_actor({"train.follower_answers_leader": True,
-                                                "train.answer_every_leader_move": True})
-    game, teacher = actor.rollout.game, actor._teacher
+def test_with_answer_every_leader_move_a_follower_learns_its_answer_to_each_move_the_leader_could_make(collector):
+    actor, _ = collector({"train.follower_answers_leader": True, "teacher.answer_every_leader_move": True})
+    game, teacher = actor.rollout.game, actor.teacher
     game.steps[:] = 1
     joints = actor._teacher_joints()
     played = np.array([[((j[0] + 1) % 4) if j[0] >= 0 else 0, 0] for j in joints])

@@ -1,12 +1,13 @@
 """The training config: defaults, YAML loading, overrides, and one-line errors naming the key."""
 
+import dataclasses
 import re
 
 import pytest
 import yaml
 
 from formation.config import ConfigError
-from formation.recipe.config import RunConfig
+from formation.recipe.config import RunConfig, TeacherSettings
 
 
 def one_line_error(values=None, path=None, overrides=None) -> str:
@@ -38,10 +39,10 @@ def test_numbers_in_exponent_notation_are_numbers_in_a_file_and_in_overrides(tmp
     from formation.cli import parse_overrides
 
     path = tmp_path / "c.yaml"
-    path.write_text("train:\n  lr: 3e-4\n  margin_gap: 5E+0\n")
-    config = RunConfig.load(path, parse_overrides(["train.safety_weight=1e-1", "train.potential=none"]))
-    assert (config.train.lr, config.train.margin_gap, config.train.safety_weight) == (3e-4, 5.0, 0.1)
-    assert config.train.potential == "none"
+    path.write_text("train:\n  lr: 3e-4\nteacher:\n  margin_gap: 5E+0\n")
+    config = RunConfig.load(path, parse_overrides(["teacher.safety_weight=1e-1", "train.shaping=0"]))
+    assert (config.train.lr, config.teacher.margin_gap, config.teacher.safety_weight) == (3e-4, 5.0, 0.1)
+    assert config.train.shaping == 0
     # still a one-line error where a whole number is needed
     assert one_line_error(path=path, overrides=parse_overrides(["train.total_env_steps=1e5"])).startswith(
         "train.total_env_steps")
@@ -57,24 +58,27 @@ def test_numbers_in_exponent_notation_are_numbers_in_a_file_and_in_overrides(tmp
     ({"game": {"setting": 9}}, "game.setting"),
     ({"game": {"d_min": 4}}, "game.d_min"),
     ({"game": {"obs_type": "rgb"}}, "game.obs_type"),
-    ({"train": {"robust_first_step": "yes"}}, "train.robust_first_step"),
+    ({"teacher": {"robust_first_step": "yes"}}, "teacher.robust_first_step"),
     ({"train": {"screen_cells": "yes"}}, "train.screen_cells"),
     ({"train": {"obstacle_forecast": "yes"}}, "train.obstacle_forecast"),
     ({"train": {"obstacle_forecast": True, "screen_cells": False}}, "train.obstacle_forecast"),
     ({"game": {"frame_stack": 1}, "train": {"obstacle_forecast": True}}, "train.obstacle_forecast"),
     ({"game": {"obstacle_speeds": [1, 3]}}, "train.obstacle_forecast"),
     ({"train": {"follower_answers_leader": "yes"}}, "train.follower_answers_leader"),
-    ({"train": {"answer_every_leader_move": "yes"}}, "train.answer_every_leader_move"),
-    ({"train": {"answer_every_leader_move": True, "follower_answers_leader": False}},
-     "train.answer_every_leader_move"),
-    ({"train": {"answer_every_leader_move": True, "dagger": False}}, "train.answer_every_leader_move"),
+    ({"teacher": {"answer_every_leader_move": "yes"}}, "teacher.answer_every_leader_move"),
+    ({"train": {"follower_answers_leader": False}, "teacher": {"answer_every_leader_move": True}},
+     "teacher.answer_every_leader_move"),
     ({"train": {"potential": "planner"}}, "train.potential"),
-    ({"train": {"safety_horizon": "path"}}, "train.safety_horizon"),
-    ({"train": {"margin_gap": -1}}, "train.margin_gap"),
+    ({"teacher": {"safety_horizon": "path"}}, "teacher.safety_horizon"),
+    ({"teacher": {"margin_gap": -1}}, "teacher.margin_gap"),
+    ({"teacher": {"demonstrations": 2}}, "teacher.demonstrations"),
+    ({"teacher": {"dagger": True}}, "teacher.dagger"),  # the teacher always labels: no such key
+    ({"train": {"dagger": True}}, "train.dagger"),  # the teacher's keys are not train's
+    ({"train": {"margin": 5.0}}, "train.margin"),
+    ({"teacher": {}, "game": {"setting": None, "height": 9, "width": 12, "n_followers": 3, "leader_start": [6, 4],
+                              "follower_starts": [[8, 2], [8, 6], [8, 4]]}}, "teacher"),  # 3 followers: no planner
     ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),
     ({"train": {"leader_window": [1, 2, -3]}}, "train.leader_window"),
-    ({"train": {"destination_compass": "yes"}}, "train.destination_compass"),
-    ({"train": {"destination_compass": True, "leader_window": None}}, "train.destination_compass"),
     ({"train": {"path": "stock"}}, "train.path"),  # the default recipe is not RLlib's stock DQN
     ({"eval": {"episodes": 2, "gif_episodes": 3}}, "eval.gif_episodes"),
 ])
@@ -86,7 +90,9 @@ def test_bad_values_name_the_key(values, names):
 REMOVED_VALUES = [("lr_end", 1e-5), ("failure_restarts", 0.25), ("mirror", True), ("row_scan", 8),
                   ("label_order", "toward"), ("label_preference", 0.1), ("safety_priority", 1.0),
                   ("rollout_veto", True), ("safety_slack", 1), ("tolerant_formation", True),
-                  ("follower_labels", "response"), ("any_shortest_move", "leader")]
+                  ("follower_labels", "response"), ("any_shortest_move", "leader"),
+                  ("followers_share_policy", False), ("potential", "none"), ("destination_compass", True),
+                  ("compass", True)]
 
 
 @pytest.mark.parametrize("key, value", REMOVED_VALUES)
@@ -97,6 +103,8 @@ def test_a_removed_option_that_would_do_something_is_refused_in_one_line_naming_
     message = one_line_error({"train": {key: value}})
     version = REMOVED[key][2]
     assert message.startswith(f"train.{key}: removed in {version} (") and message.endswith("/ absent")
+    if key == "potential":  # a saved run's `potential: none` reads as `shaping: 0` (the test below)
+        return
     # a saved run's config.yaml (formation train --resume, formation.policy.load) alike
     saved = RunConfig().to_dict()
     saved["train"][key] = value
@@ -112,7 +120,8 @@ def test_a_saved_run_that_names_removed_options_at_their_neutral_values_loads_wi
     # what 0.1 wrote into every run folder's config.yaml, and 0.2 (any_shortest_move)
     saved["train"].update(lr_end=None, failure_restarts=0.0, mirror=False, row_scan=0, label_order="lockstep",
                           label_preference=0.0, safety_priority=0.0, rollout_veto=False, safety_slack=0,
-                          tolerant_formation=False, follower_labels="teacher", any_shortest_move="none")
+                          tolerant_formation=False, follower_labels="teacher", any_shortest_move="none",
+                          followers_share_policy=True, potential="distance", destination_compass=False, compass=False)
     assert set(REMOVED) <= set(saved["train"])
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(saved))
@@ -150,8 +159,45 @@ def test_the_reward_only_configs_train_without_the_planner_and_the_settings_with
         assert run.planner_options == [], path
         assert run.game.obs_type == "pixels" and run.game.frame_stack == 4  # from pixels, as the paper
     assert RunConfig.load("configs/setting2.yaml").planner_options == [
-        "train.dagger", "train.demonstrations", "train.safety_horizon", "refit.rounds"]
+        "teacher", "teacher.demonstrations", "teacher.safety_horizon", "refit.rounds"]
     assert RunConfig.load("configs/paper.yaml").planner_options == []
+
+
+def test_a_config_with_a_game_section_alone_trains_from_the_reward_alone_as_the_reward_only_configs(tmp_path):
+    bare = RunConfig.from_dict({"game": {"setting": 3, "obs_type": "pixels", "frame_stack": 4}})
+    assert bare.teacher is None and bare.planner_options == []
+    shipped = RunConfig.load("configs/reward_only/setting3.yaml")
+    assert shipped.train == dataclasses.replace(bare.train, total_env_steps=shipped.train.total_env_steps)
+    # an empty teacher section turns the teacher on, with its defaults
+    assert RunConfig.from_dict({"teacher": {}}).teacher == TeacherSettings()
+    assert "teacher" not in bare.to_dict() and RunConfig.from_dict(RunConfig.from_dict({"teacher": {}}).to_dict())\
+        .teacher == TeacherSettings()
+
+
+# what a run folder's config.yaml held before the teacher had a section of its own
+OLD_TEACHER = dict(dagger=True, demonstrations=0.5, margin=5.0, margin_gap=5.0, planner_slack=6,
+                   robust_first_step=True, answer_every_leader_move=True, safety_horizon=4, safety_weight=1.0,
+                   safety_encoder=True, potential="distance")
+
+
+def test_a_saved_run_from_before_the_teacher_section_loads_with_its_teacher_or_without_one(tmp_path):
+    saved = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "grid"}}).to_dict()
+    saved["train"].update(OLD_TEACHER)
+    path = tmp_path / "config.yaml"
+    path.write_text(yaml.safe_dump(saved))
+    run = RunConfig.load_saved(path)
+    assert run.teacher == TeacherSettings(answer_every_leader_move=True, safety_horizon=4, safety_encoder=True)
+    # a reward-only run of then: no labels, no demonstrations, the paper's reward unshaped
+    saved["train"].update(dagger=False, demonstrations=0, margin=0, safety_horizon=0, safety_encoder=False,
+                          potential="none")
+    path.write_text(yaml.safe_dump(saved))
+    run = RunConfig.load_saved(path)
+    assert run.teacher is None and run.train.shaping == 0
+    # the planner's games without its labels are gone: refused in one line naming the key
+    saved["train"].update(demonstrations=0.5)
+    path.write_text(yaml.safe_dump(saved))
+    with pytest.raises(ConfigError, match=r"^train\.dagger: false with train\.demonstrations"):
+        RunConfig.load_saved(path)
 
 
 @pytest.mark.parametrize("folder", ["configs", "configs/reward_only"])
@@ -176,8 +222,8 @@ def test_paper_config_is_the_papers_table_2():
     assert t.leader_window is None and not t.screen_cells  # the paper's networks see the whole screen in patches
     assert not t.obstacle_forecast  # and learn the obstacles' motion themselves
     assert not t.follower_answers_leader  # and choose at once, each on its own
-    assert (t.dagger, t.demonstrations, t.margin, t.exploration, t.n_step, t.prioritized) == (
-        False, 0, 0, "independent", 1, False)
+    assert paper.teacher is None and (t.exploration, t.n_step, t.prioritized) == ("independent", 1, False)
+    assert t.reward_formation_kept is None and not t.team_reward  # the paper's reward, unshaped
     assert paper.game.max_steps == 200 and paper.game.reward_reach == 50
 
 
@@ -187,12 +233,16 @@ def test_a_saved_run_from_before_a_key_existed_keeps_what_it_trained_with(tmp_pa
     del saved["train"]["screen_cells"]  # and before screens were read per cell: 4x4-pixel patches
     del saved["train"]["obstacle_forecast"]
     del saved["train"]["follower_answers_leader"]
+    for key in ("reward_formation_kept", "team_reward"):  # the paper's reward
+        del saved["train"][key]
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(saved))
     assert RunConfig.load_saved(path).train.leader_window is None
     assert RunConfig.load_saved(path).train.screen_cells is False
     assert RunConfig.load_saved(path).train.obstacle_forecast is False
     assert RunConfig.load_saved(path).train.follower_answers_leader is False
+    old = RunConfig.load_saved(path).train
+    assert (old.reward_formation_kept, old.team_reward) == (None, False)
     assert RunConfig.load(path).train.leader_window == (12, 3, 10)  # a plain config takes today's default
     assert RunConfig.load(path).train.screen_cells is True
     assert RunConfig.load(path).train.obstacle_forecast is True

@@ -16,12 +16,13 @@ from formation.recipe.config import RunConfig  # noqa: E402
 SMOKE = "configs/smoke.yaml"
 
 
-def build(actors: int, **train):
+def build(actors: int, teacher: dict | None = None, **train):
     from formation.rllib.algorithm import build_algorithm_config
 
     run = RunConfig.load(SMOKE, {"resources.num_rollout_actors": actors,
                                  "resources.cpus_per_rollout_actor": 0.5 if actors > 1 else 1.0,
-                                 **{f"train.{k}": v for k, v in train.items()}})
+                                 **{f"train.{k}": v for k, v in train.items()},
+                                 **{f"teacher.{k}": v for k, v in (teacher or {}).items()}})
     return run, build_algorithm_config(run).build_algo()
 
 
@@ -38,7 +39,7 @@ def recipe_run(cluster):
     of its episodes that started from an exploring start (weighed by the episodes that ended in each iteration:
     each result's shares come from those alone). The algorithm stops before the tests run, so that its actors
     leave the module's small Ray to the tests after them."""
-    run, algo = build(2, prioritized=True, margin=5.0, answer_every_leader_move=True,
+    run, algo = build(2, teacher={"margin": 5.0, "answer_every_leader_move": True}, prioritized=True,
                       exploring_starts=0.5, learning_starts=500)
     try:
         algo.time_account()
@@ -202,7 +203,7 @@ def test_asking_for_more_than_the_cluster_has_fails_fast(cluster, tmp_path):
 def test_the_stock_rllib_path_trains_both_policies_on_the_papers_reward(cluster):
     import torch
 
-    run, algo = build(1, path="stock", shaping=0.0, demonstrations=0.0, margin=0.0, dagger=False, prioritized=False,
+    run, algo = build(1, path="stock", shaping=0.0, reward_formation_kept=None, team_reward=False, prioritized=False,
                       follower_answers_leader=False, exploration="independent", replay_ratio=0.25,
                       learning_starts=200)
     try:

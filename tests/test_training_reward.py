@@ -53,7 +53,7 @@ def test_the_shaping_telescopes_to_a_reach_and_charges_the_distance_left_at_a_co
     config = GameConfig(setting=None, height=9, width=9, n_obstacles=1, obs_type="grid", frame_stack=2)
     gamma, games, start = 0.97, 32, config.height - 1  # the leader starts on the bottom row, 8 steps to go
     paper, ended, _ = play(GameRollout(config, games, seed=3), 150)
-    shaped, _, _ = play(GameRollout(config, games, seed=3, potential=Potential("distance", config), shaping=1.0,
+    shaped, _, _ = play(GameRollout(config, games, seed=3, potential=Potential(config), shaping=1.0,
                                     gamma=gamma), 150)
     assert np.allclose(shaped[..., 1], paper[..., 1])  # followers' potential is 0
     sums = {"reached": [], "other": []}
@@ -80,8 +80,8 @@ def test_a_bad_training_reward_is_refused_in_one_line(key, value, allowed):
 
 @pytest.mark.parametrize("key, value", [("reward_formation_kept", 0.0), ("team_reward", True)])
 def test_rllibs_stock_dqn_refuses_a_training_reward_it_would_not_apply(key, value):
-    stock = {"path": "stock", "shaping": 0, "demonstrations": 0, "margin": 0, "prioritized": False, "dagger": False,
-             "follower_answers_leader": False}
+    stock = {"path": "stock", "shaping": 0, "prioritized": False, "follower_answers_leader": False,
+             "reward_formation_kept": None, "team_reward": False}
     RunConfig.from_dict({"train": stock})
     with pytest.raises(ConfigError, match=rf"^train\.path: stock .*{key}: "):
         RunConfig.from_dict({"train": {**stock, key: value}})

@@ -28,7 +28,6 @@ from typing import Any
 import yaml
 
 from formation.config import ConfigError, GameConfig
-from formation.recipe.shaping import POTENTIALS
 
 PATHS = ("formation", "stock")
 EXPLORATIONS = ("independent", "joint")
@@ -50,6 +49,11 @@ REMOVED: dict[str, tuple[tuple[Any, ...], str, str]] = {  # key: (neutral values
     "follower_labels": (("teacher",), "the responding followers' labels did not help", "0.2"),
     "any_shortest_move": (("none",), "the leader's margin towards any shortest move helped on setting 1 only and "
                           "lost on settings 2-3; the one recipe keeps the label", "0.4"),
+    "followers_share_policy": ((True,), "the followers always share one network", "0.4"),
+    "potential": (("distance",), "train.shaping: 0 turns the distance shaping off", "0.4"),
+    "destination_compass": ((False,), "the destination compass shortened the successes on settings 3 and 4 but "
+                            "validated lower on settings 1, 2 and 4", "0.4"),
+    "compass": ((False,), "a card's network of before 0.4: train.destination_compass, removed", "0.4"),
 }
 
 
@@ -69,14 +73,18 @@ def drop_removed(section: str, values: dict[str, Any]) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class TrainSettings:
-    """How the two DQNs learn. Defaults are the recipe that reaches (see docs/lab/TRAINING.md)."""
+    """How the two DQNs learn: by default from the game's reward alone (the reward-only recipe, docs/RECIPE.md);
+    the optional ``teacher`` section adds the planner's labels."""
 
     gamma: float = 0.97  # discount factor
     n_step: int = 3  # steps of the n-step return in the double DQN target
     lr: float = 1e-3  # learning rate (Adam)
     batch_size: int = 64  # steps per learner update
     replay_capacity: int = 100_000  # steps the replay keeps (across its shards)
-    replay_ratio: float = 0.25  # learner updates per env step, whatever the number of actors
+    # learner updates per env step, whatever the number of actors: one per 16 env steps gave each update four
+    # times the fresh play of one per 4, and learnt as much per env step (docs/lab/TRAINING.md "Fewer updates per
+    # env step")
+    replay_ratio: float = 0.0625
     learning_starts: int = 2_000  # env steps in replay before the first update
     target_update_every: int = 100  # learner updates between target-network syncs
     epsilon_start: float = 1.0  # exploration rate at the start
@@ -85,48 +93,31 @@ class TrainSettings:
     # independent: each agent explores on its own; joint: with probability epsilon the whole team
     # explores together, every follower copying the leader's random move (keeps the formation)
     exploration: str = "joint"
-    shaping: float = 1.0  # weight of potential-based shaping; 0 = the paper's reward alone
-    potential: str = "distance"  # none | distance (see formation.recipe.shaping)
+    # weight of the potential-based shaping towards the destination (formation.recipe.shaping); 0: the game's reward
+    # alone
+    shaping: float = 1.0
     # the training reward of a step that keeps the formation, in place of the game's (the paper's +1); null: the
-    # game's. The game's own reward still scores every episode and evaluation
-    reward_formation_kept: float | None = None
-    # the followers' training reward also gets the game's reach reward (the paper gives it to the leader alone)
-    team_reward: bool = False
-    planner_slack: int = 6  # the teacher: paths longer than the lower bound + slack count as lost
+    # game's. With the +1 the team learns to wait in formation (setting 1 from the grid: 0.0% greedy success with
+    # it, 96.1% with 0). The game's own reward still scores every episode and evaluation
+    reward_formation_kept: float | None = 0.0
+    # the followers' training reward also gets the game's reach reward (the paper gives it to the leader alone):
+    # without it the successes took 34% more steps than the planner's, with it 3-4% (setting 1 from the grid)
+    team_reward: bool = True
     steps_per_sample: int = 8  # steps of all of an actor's games per push to the replay
-    demonstrations: float = 0.5  # fraction of games played by the clairvoyant planner (the teacher)
     # exploring starts: the fraction of training episodes that start with the team, in its start formation,
     # moved to a random place on the board clear of the obstacles (formation.recipe.rollout.exploring_start),
     # so that it also learns states its own play seldom reaches (the top row beside the destination).
     # Evaluation always starts from the spec's places
     exploring_starts: float = 0.0
-    margin: float = 5.0  # DQfD large-margin loss weight towards the teacher's actions (labels)
-    margin_gap: float = 5.0  # DQfD's l(a_E, a): how far above every other action the teacher's Q must stand
-    # DAgger: label every visited state with the teacher's joint action, the first in a fixed lockstep order
-    # of those that start a shortest path (formation.recipe.teacher.lockstep_order)
-    dagger: bool = True
-    # DAgger labels of an episode's first step (no motion on screen yet): keep a path for the most obstacle
-    # velocities instead of the clairvoyant planner's choice (formation.recipe.teacher)
-    robust_first_step: bool = True
     # the followers' networks answer the leader: one Q-value per (leader's move, own move), and a follower
-    # makes its move in the row of the move the leader makes (formation.recipe.qnet.team_q_values); DAgger
-    # labels it with the teacher's answer to that move (formation.recipe.teacher.Teacher.answer)
+    # makes its move in the row of the move the leader makes (formation.recipe.qnet.team_q_values)
     follower_answers_leader: bool = True
-    # with follower_answers_leader, DAgger also labels the rows of the moves the leader did not make: the
-    # teacher's answer to every move the leader could make there (formation.recipe.teacher.Teacher.answers), not
-    # only to the one it made
-    answer_every_leader_move: bool = False
-    prioritized: bool = True  # priorities: TD error + the weighted margin loss (states the modules get wrong)
-    followers_share_policy: bool = True  # all followers act with one network (module)
+    prioritized: bool = True  # prioritized replay: TD error (+ the teacher's margin loss, with a teacher)
     hidden: int = 256  # units of the dueling heads' hidden layers
     channels: tuple[int, int, int] = (32, 64, 64)  # output channels of the encoder's three convolutions
     # the Q-networks look through a window that follows the leader: cells above it, below it, and either
     # side (formation.recipe.qnet.LeaderWindow); null: the whole screen, as the paper's networks
     leader_window: tuple[int, int, int] | None = (12, 3, 10)
-    # the leader's window also marks the destination, or, where it lies outside, the window's edge nearest to it
-    # (formation.recipe.qnet.LeaderWindow): on the 50x50 boards the leader otherwise sees it only in the last 12
-    # rows. Needs leader_window
-    destination_compass: bool = False
     # pixels only: the Q-networks read one pixel per cell of the board from each screen (the renderer paints a
     # whole cell in one colour, so nothing is lost; formation.recipe.qnet.ScreenCells), then every cell, and the
     # replay stores only those cells; false: the screen in 4x4-pixel patches
@@ -136,27 +127,11 @@ class TrainSettings:
     # last two frames and the game's rule of motion (formation.recipe.qnet.ObstacleForecast; no weights).
     # Needs grid observations or screen_cells, and frame_stack >= 2
     obstacle_forecast: bool = True
-    # each Q-network also learns, beside its Q-values, which of the team's 16 joint moves start this many steps
-    # free of collisions and formation breaks (the planner on the game's true state labels every visited
-    # state, as the teacher labels it; formation.planner.surviving_first_moves_many), with a loss weighted by
-    # safety_weight; greedy play then keeps to the joint moves that head judges safe (formation.policy). 0: none.
-    # Needs one follower
-    safety_horizon: int = 0
-    safety_weight: float = 1.0  # weight of the safety head's loss
-    # the safety head reads an encoder of its own (a copy of the Q-values' layers with weights, trained by the
-    # safety loss alone) instead of the Q-values' features, so its errors need not fall in the states where the
-    # Q-values err. Needs a safety head
-    safety_encoder: bool = False
     grad_clip: float = 10.0  # global gradient norm clip
     total_env_steps: int = 300_000  # env steps to train for
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
     path: str = "formation"  # "formation": rollout actors -> replay actor -> learner; "stock": RLlib's DQN
     seed: int = 0  # seed of games, exploration and networks
-
-    @property
-    def safety_head(self) -> bool:
-        """Whether the networks learn a safety head (``safety_horizon`` not 0)."""
-        return self.safety_horizon != 0
 
     def __post_init__(self) -> None:
         _number(self, "gamma", 0.0, 1.0)
@@ -165,58 +140,78 @@ class TrainSettings:
         _number(self, "epsilon_start", 0.0, 1.0)
         _number(self, "epsilon_end", 0.0, 1.0)
         _number(self, "shaping", 0.0, math.inf)
-        _number(self, "demonstrations", 0.0, 1.0)
         _number(self, "exploring_starts", 0.0, 1.0)
         kept = self.reward_formation_kept
         number = isinstance(kept, int | float) and not isinstance(kept, bool) and math.isfinite(kept)
         if kept is not None and not number:
             raise ConfigError(f"train.reward_formation_kept: {kept!r} is not allowed; allowed: null or a number")
-        _number(self, "margin", 0.0, math.inf)
-        _number(self, "margin_gap", 0.0, math.inf)
-        _number(self, "safety_weight", 0.0, math.inf)
         _number(self, "grad_clip", 0.0, math.inf, low_open=True)
-        if self.potential not in POTENTIALS:
-            raise ConfigError(f"train.potential: {self.potential!r} is not allowed; allowed: {', '.join(POTENTIALS)}")
-        _integer(self, "planner_slack", 0)
         for name in ("n_step", "batch_size", "steps_per_sample", "replay_capacity", "target_update_every", "hidden",
                      "total_env_steps", "weights_every_updates", "epsilon_env_steps"):
             _integer(self, name, 1)
         _integer(self, "learning_starts", 0)
-        _integer(self, "safety_horizon", 0)
-        if self.safety_encoder is True and not self.safety_horizon:
-            raise ConfigError("train.safety_encoder: true needs train.safety_horizon other than 0; allowed: false")
         _integer(self, "seed", 0)
-        for name in ("prioritized", "followers_share_policy", "dagger", "team_reward", "robust_first_step",
-                     "screen_cells", "obstacle_forecast", "follower_answers_leader", "answer_every_leader_move",
-                     "safety_encoder", "destination_compass"):
+        for name in ("prioritized", "team_reward", "screen_cells", "obstacle_forecast", "follower_answers_leader"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:
             raise ConfigError(f"train.exploration: {self.exploration!r} is not allowed; "
                               f"allowed: {', '.join(EXPLORATIONS)}")
-        if self.answer_every_leader_move and not (self.follower_answers_leader and self.dagger):
-            raise ConfigError("train.answer_every_leader_move: true is not allowed without "
-                              "train.follower_answers_leader: true and train.dagger: true; allowed: false")
         if self.path not in PATHS:
             raise ConfigError(f"train.path: {self.path!r} is not allowed; allowed: {', '.join(PATHS)}")
-        if self.path == "stock" and (self.shaping > 0 or self.demonstrations > 0 or self.margin > 0
-                                     or self.prioritized or self.dagger or self.follower_answers_leader
-                                     or self.safety_horizon or self.reward_formation_kept is not None
-                                     or self.team_reward):
-            raise ConfigError("train.path: stock runs RLlib's DQN on the paper's reward alone; "
-                              "set train.shaping: 0, demonstrations: 0, margin: 0, prioritized: false, dagger: false, "
-                              "follower_answers_leader: false, safety_horizon: 0, reward_formation_kept: null, "
-                              "team_reward: false")
         if self.leader_window is not None and (
                 not isinstance(self.leader_window, tuple) or len(self.leader_window) != 3
                 or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in self.leader_window)):
             raise ConfigError(f"train.leader_window: {self.leader_window!r} is not allowed; "
                               "allowed: null or three integers >= 0 (cells above, below, either side)")
-        if self.destination_compass and self.leader_window is None:
-            raise ConfigError("train.destination_compass: true needs train.leader_window other than null; "
-                              "allowed: false")
         if len(self.channels) != 3 or not all(isinstance(c, int) and c >= 1 for c in self.channels):
             raise ConfigError(f"train.channels: {list(self.channels)!r} is not allowed; allowed: three integers >= 1")
+
+
+@dataclass(frozen=True)
+class TeacherSettings:
+    """The teacher recipe (optional; a ``teacher`` section turns it on): the clairvoyant planner labels every state
+    the rollouts visit with its joint action (DAgger; formation.recipe.teacher), the learners add DQfD's large-margin
+    loss towards those labels, and a share of the games follow them. Needs a planner that solves the game: 1 or 2
+    followers."""
+
+    demonstrations: float = 0.5  # fraction of games that play the teacher's labels instead of the learners' moves
+    margin: float = 5.0  # DQfD large-margin loss weight towards the teacher's actions (labels)
+    margin_gap: float = 5.0  # DQfD's l(a_E, a): how far above every other action the teacher's Q must stand
+    planner_slack: int = 6  # paths longer than the lower bound + slack count as lost
+    # labels of an episode's first step (no motion on screen yet): keep a path for the most obstacle velocities
+    # instead of the clairvoyant planner's choice (formation.recipe.teacher)
+    robust_first_step: bool = True
+    # with train.follower_answers_leader, the labels also give the followers' rows of the moves the leader did not
+    # make: the teacher's answer to every move the leader could make there (formation.recipe.teacher.Teacher.answers)
+    answer_every_leader_move: bool = False
+    # each Q-network also learns, beside its Q-values, which of the team's 16 joint moves start this many steps
+    # free of collisions and formation breaks (the planner on the game's true state labels every visited
+    # state; formation.planner.surviving_first_moves_many), with a loss weighted by safety_weight; greedy play then
+    # keeps to the joint moves that head judges safe (formation.policy). 0: none. Needs one follower
+    safety_horizon: int = 0
+    safety_weight: float = 1.0  # weight of the safety head's loss
+    # the safety head reads an encoder of its own (a copy of the Q-values' layers with weights, trained by the
+    # safety loss alone) instead of the Q-values' features. Needs a safety head
+    safety_encoder: bool = False
+
+    @property
+    def safety_head(self) -> bool:
+        """Whether the networks learn a safety head (``safety_horizon`` not 0)."""
+        return self.safety_horizon != 0
+
+    def __post_init__(self) -> None:
+        _number(self, "demonstrations", 0.0, 1.0, section="teacher")
+        _number(self, "margin", 0.0, math.inf, section="teacher")
+        _number(self, "margin_gap", 0.0, math.inf, section="teacher")
+        _number(self, "safety_weight", 0.0, math.inf, section="teacher")
+        _integer(self, "planner_slack", 0, section="teacher")
+        _integer(self, "safety_horizon", 0, section="teacher")
+        for name in ("robust_first_step", "answer_every_leader_move", "safety_encoder"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"teacher.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
+        if self.safety_encoder and not self.safety_horizon:
+            raise ConfigError("teacher.safety_encoder: true needs teacher.safety_horizon other than 0; allowed: false")
 
 
 @dataclass(frozen=True)
@@ -321,6 +316,8 @@ class CheckpointSettings:
 
 SECTIONS = {"train": TrainSettings, "resources": ResourceSettings, "eval": EvalSettings,
             "checkpoint": CheckpointSettings, "refit": RefitSettings}
+OPTIONAL_SECTIONS = {"teacher": TeacherSettings}  # absent: off
+PLANNER_FOLLOWERS = (1, 2)  # the team sizes whose joint moves the planner searches (formation.planner)
 
 
 @dataclass(frozen=True)
@@ -331,15 +328,30 @@ class RunConfig:
     eval: EvalSettings = field(default_factory=EvalSettings)
     checkpoint: CheckpointSettings = field(default_factory=CheckpointSettings)
     refit: RefitSettings = field(default_factory=RefitSettings)
+    teacher: TeacherSettings | None = None  # None: the reward-only recipe
 
     def __post_init__(self) -> None:
         patches = self.game.obs_type == "pixels" and not self.train.screen_cells
+        teacher = self.teacher
+        if teacher is not None and self.game.n_followers not in PLANNER_FOLLOWERS:
+            raise ConfigError(f"teacher: the planner solves teams of {' or '.join(map(str, PLANNER_FOLLOWERS))} "
+                              f"followers, not game.n_followers: {self.game.n_followers}; allowed: no teacher "
+                              "section (the reward-only recipe)")
         if self.refit.rounds and self.game.n_followers != 1:
             raise ConfigError(f"refit.rounds: {self.refit.rounds} needs game.n_followers: 1 "
                               f"(not {self.game.n_followers}); allowed: 0")
-        if self.train.safety_horizon and self.game.n_followers != 1:
-            raise ConfigError(f"train.safety_horizon: {self.train.safety_horizon} needs game.n_followers: 1 "
+        if teacher is not None and teacher.safety_horizon and self.game.n_followers != 1:
+            raise ConfigError(f"teacher.safety_horizon: {teacher.safety_horizon} needs game.n_followers: 1 "
                               f"(not {self.game.n_followers}); allowed: 0")
+        if teacher is not None and teacher.answer_every_leader_move and not self.train.follower_answers_leader:
+            raise ConfigError("teacher.answer_every_leader_move: true needs train.follower_answers_leader: true; "
+                              "allowed: false")
+        t = self.train
+        if t.path == "stock" and (t.shaping > 0 or teacher is not None or t.prioritized or t.follower_answers_leader
+                                  or t.reward_formation_kept is not None or t.team_reward):
+            raise ConfigError("train.path: stock runs RLlib's DQN on the paper's reward alone; "
+                              "set train.shaping: 0, prioritized: false, follower_answers_leader: false, "
+                              "reward_formation_kept: null, team_reward: false, and no teacher section")
         if self.train.obstacle_forecast:
             if patches:
                 raise ConfigError("train.obstacle_forecast: true needs the screen read per cell; allowed: false, "
@@ -356,7 +368,7 @@ class RunConfig:
     def from_dict(cls, values: dict[str, Any]) -> RunConfig:
         if not isinstance(values, dict):
             raise ConfigError(f"config: a mapping of sections is needed, got {type(values).__name__}")
-        allowed = ("game", *SECTIONS)
+        allowed = ("game", *SECTIONS, "teacher")
         for key in values:
             if key not in allowed:
                 raise ConfigError(f"{key}: unknown section; allowed: {', '.join(allowed)}")
@@ -372,6 +384,8 @@ class RunConfig:
         parts = {"game": game}
         for name in SECTIONS:
             parts[name] = section_of(name, values.get(name))
+        if "teacher" in values:  # present, even empty: the teacher recipe
+            parts["teacher"] = section_of("teacher", values["teacher"])
         return cls(**parts)
 
     @classmethod
@@ -387,7 +401,7 @@ class RunConfig:
     @classmethod
     def from_saved(cls, values: dict[str, Any], overrides: dict[str, Any] | None = None) -> RunConfig:
         """``load_saved`` of a config's values (a policy card's ``training.config``)."""
-        values = copy.deepcopy(values)
+        values = _teacher_of_old(copy.deepcopy(values))
         for (section, key), value in LATER_KEYS.items():
             if isinstance(values.get(section), dict) and key not in values[section]:
                 values[section][key] = value
@@ -397,22 +411,59 @@ class RunConfig:
     def planner_options(self) -> list[str]:
         """The options with which the clairvoyant planner plays or labels while this run trains (the teacher's
         games and labels, the safety heads' labels, the refit phase); none: it learns from the reward alone."""
-        t = self.train
-        used = {"train.dagger": t.dagger, "train.demonstrations": t.demonstrations > 0,
-                "train.safety_horizon": t.safety_head, "refit.rounds": self.refit.rounds > 0}
+        teacher = self.teacher
+        used = {"teacher": teacher is not None,
+                "teacher.demonstrations": teacher is not None and teacher.demonstrations > 0,
+                "teacher.safety_horizon": teacher is not None and teacher.safety_head,
+                "refit.rounds": self.refit.rounds > 0}
         return [name for name, on in used.items() if on]
+
+    @property
+    def safety_head(self) -> bool:
+        """Whether the networks learn a safety head (``teacher.safety_horizon`` not 0)."""
+        return self.teacher is not None and self.teacher.safety_head
 
     def to_dict(self) -> dict[str, Any]:
         out = {"game": self.game.to_dict()}
         for name in SECTIONS:
-            section = dataclasses.asdict(getattr(self, name))
-            out[name] = {k: list(v) if isinstance(v, tuple) else v for k, v in section.items()}
+            out[name] = _plain(getattr(self, name))
+        if self.teacher is not None:
+            out["teacher"] = _plain(self.teacher)
         return out
+
+
+def _plain(section: Any) -> dict[str, Any]:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(section).items()}
+
+
+# the teacher's keys as configs before 0.4 held them in train:, with train.dagger turning the teacher on
+OLD_TEACHER_KEYS = ("dagger", "demonstrations", "margin", "margin_gap", "planner_slack", "robust_first_step",
+                    "answer_every_leader_move", "safety_horizon", "safety_weight", "safety_encoder")
+
+
+def _teacher_of_old(values: dict[str, Any]) -> dict[str, Any]:
+    """A saved config from before 0.4 as today's: its teacher's keys move from ``train`` to ``teacher`` (where
+    ``train.dagger`` was on, the old default), ``train.potential: none`` becomes ``train.shaping: 0``."""
+    train = values.get("train")
+    if not isinstance(train, dict) or "teacher" in values:
+        return values
+    if train.get("potential") == "none":
+        train.pop("potential")
+        train["shaping"] = 0.0
+    old = {key: train.pop(key) for key in OLD_TEACHER_KEYS if key in train}
+    if not old:
+        return values
+    if old.pop("dagger", True):
+        values["teacher"] = old
+    elif old.get("demonstrations", 0.5) or old.get("safety_horizon", 0):
+        raise ConfigError("train.dagger: false with train.demonstrations or train.safety_horizon: removed in 0.4 "
+                          "(the teacher always labels); allowed: train.dagger: true, or both 0")
+    return values
 
 
 def section_of(name: str, values: dict[str, Any] | None) -> Any:
     """One section of a config (``SECTIONS[name]``) from its mapping; an unknown key is a one-line error."""
-    kind = SECTIONS[name]
+    kind = {**SECTIONS, **OPTIONAL_SECTIONS}[name]
     values = values or {}
     if not isinstance(values, dict):
         raise ConfigError(f"{name}: a mapping is needed, got {values!r}")
@@ -428,7 +479,8 @@ def section_of(name: str, values: dict[str, Any] | None) -> Any:
 LATER_KEYS: dict[tuple[str, str], Any] = {("train", "leader_window"): None, ("train", "screen_cells"): False,
                                           ("train", "obstacle_forecast"): False,
                                           ("train", "follower_answers_leader"): False,
-                                          ("train", "answer_every_leader_move"): False}
+                                          ("train", "reward_formation_kept"): None, ("train", "team_reward"): False,
+                                          ("teacher", "answer_every_leader_move"): False}
 
 
 class _YamlLoader(yaml.SafeLoader):
@@ -509,8 +561,8 @@ def field_docs(cls: type) -> dict[str, str]:
 
 def markdown() -> str:
     """docs/CONFIG.md: every option of every section, its default and its doc (``field_docs``)."""
-    sections = {"game": GameConfig, **SECTIONS}
-    defaults = RunConfig().to_dict()
+    sections = {"game": GameConfig, **SECTIONS, **OPTIONAL_SECTIONS}
+    defaults = {**RunConfig().to_dict(), **{name: _plain(kind()) for name, kind in OPTIONAL_SECTIONS.items()}}
     out = ["# Configuration", "",
            "Every option of a training config (`formation train CONFIG`), by section, with its default and meaning. "
            "`--set section.key=value` overrides one. Generated from the config's own field docs by "

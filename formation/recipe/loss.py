@@ -15,7 +15,7 @@ from formation.recipe.qnet import N_ACTIONS
 # a module batch's columns; the first three are RLlib's own names (ray.rllib.core.columns.Columns)
 OBS, NEXT_OBS, ACTIONS = "obs", "new_obs", "actions"
 RETURNS, DISCOUNTS, LABELS, WEIGHTS = "n_step_returns", "n_step_discounts", "teacher_labels", "weights"
-SAFE = "safe_joint_moves"  # train.safety_horizon: (N, 16) bools, the joint moves that start safe steps
+SAFE = "safe_joint_moves"  # teacher.safety_horizon: (N, 16) bools, the joint moves that start safe steps
 
 
 def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],

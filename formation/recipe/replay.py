@@ -39,8 +39,8 @@ class Chunk:
     ``labels`` (N, A) int, optional: a teacher's action for each agent in this state (the
     planner's, for demonstrations and DAgger), -1 where there is none. ``answers`` (N, A, M) int,
     optional: each agent's teacher action if the leader made each of its M moves
-    (``train.answer_every_leader_move``), -1 where there is none. ``safe`` (N,) int, optional: the joint actions
-    that start ``train.safety_horizon`` steps free of failure, as a bit mask
+    (``teacher.answer_every_leader_move``), -1 where there is none. ``safe`` (N,) int, optional: the joint actions
+    that start ``teacher.safety_horizon`` steps free of failure, as a bit mask
     (``formation.planner.surviving_first_moves_many``), 0 where there is none.
     """
 

@@ -1,7 +1,7 @@
 """Refitting a trained team's safety heads (``formation refit``): many fresh states of the team's own play,
 labelled by the clairvoyant planner, fitted by the heads alone.
 
-During training a safety head (``train.safety_horizon``) learns from the states in the replay, a few
+During training a safety head (``teacher.safety_horizon``) learns from the states in the replay, a few
 hundred thousand at most, each seen by a learner that is also busy with the Q-values. Its wrong verdicts on
 unseen states are what the trained teams fail on (docs/lab/TRAINING.md). After training, states cost far less:
 the team plays thousands of games at once (``formation.evaluate.play_greedy``), the planner labels their

@@ -5,11 +5,8 @@ The stored reward of a step becomes ``r + w * (gamma * Phi(s') - Phi(s))``; the 
 the leader reaches, ``Phi(s_T)`` is 0; where a collision or break ends the episode, ``s_T`` is where it ended
 and nothing bootstraps after it, so that end is charged ``w`` times the steps the leader had left (discounted),
 on top of the game's -1s. That charge is not policy-invariant (Ng et al. take ``Phi`` of an ending as 0):
-it makes ending far from the destination dearer than ending near it. Potentials, per agent:
-
-- ``distance``: the leader's minus Chebyshev distance to the destination (its steps to go,
-  ignoring obstacles); 0 for followers.
-- ``none``: no shaping (0 everywhere).
+it makes ending far from the destination dearer than ending near it. The potential, per agent: the leader's
+minus Chebyshev distance to the destination (its steps to go, ignoring obstacles); 0 for followers.
 """
 
 from __future__ import annotations
@@ -19,21 +16,16 @@ import numpy as np
 from formation.config import GameConfig
 from formation.game import BatchedGame
 
-POTENTIALS = ("none", "distance")
-
 
 class Potential:
-    def __init__(self, kind: str, config: GameConfig):
-        if kind not in POTENTIALS:
-            raise ValueError(f"train.potential: {kind!r} is not allowed; allowed: {', '.join(POTENTIALS)}")
-        self.kind, self.config = kind, config
+    def __init__(self, config: GameConfig):
+        self.config = config
         self._destination = np.array(config.destination)
 
     def __call__(self, game: BatchedGame, mask: np.ndarray | None = None) -> np.ndarray:
         """Phi of every agent of the games where ``mask`` is True (others 0), shape (B, 1+k)."""
         phi = np.zeros((game.batch_size, game.n_agents), np.float32)
-        if self.kind == "distance":
-            phi[:, 0] = -np.abs(game.positions[:, 0] - self._destination).max(axis=1)
+        phi[:, 0] = -np.abs(game.positions[:, 0] - self._destination).max(axis=1)
         if mask is not None:
             phi[~mask] = 0
         return phi

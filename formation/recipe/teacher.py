@@ -71,8 +71,8 @@ class Teacher:
 
     @classmethod
     def of_run(cls, run) -> Teacher:
-        """The teacher of a training config (``RunConfig``): its game and ``train`` labelling settings."""
-        return cls(run.game, run.train.planner_slack, run.train.robust_first_step)
+        """The teacher of a training config (``RunConfig``): its game and ``teacher`` section."""
+        return cls(run.game, run.teacher.planner_slack, run.teacher.robust_first_step)
 
     def answer(self, scenario: Scenario, joint: tuple[int, ...], leader_move: int) -> tuple[int, ...] | None:
         """The joint action to learn when the leader makes ``leader_move`` (``train.follower_answers_leader``):
@@ -89,7 +89,7 @@ class Teacher:
 
     def answers(self, scenario: Scenario, joint: tuple[int, ...]) -> list[tuple[int, ...] | None]:
         """``answer`` to each move the leader could make, in the order of the moves
-        (``train.answer_every_leader_move``)."""
+        (``teacher.answer_every_leader_move``)."""
         return [self.answer(scenario, joint, move) for move in range(len(MOVES))]
 
     def _shortest_with(self, scenario: Scenario, leader_move: int) -> tuple[int, ...] | None:
@@ -101,6 +101,8 @@ class Teacher:
         """The joint actions that start a shortest path within the slack (None: no path), from one
         search; the last few are kept, since a state's label and its answers need the same."""
         self._find_starts(self._unsearched if scenario in self._unsearched else [scenario])
+        if scenario not in self._found:  # kept once, then dropped to make room for the others of its batch
+            self._find_starts([scenario])
         return self._found[scenario]
 
     def _find_starts(self, scenarios: list[Scenario]) -> None:
@@ -232,7 +234,7 @@ def _joint_index(joint: tuple[int, ...]) -> int:
 
 
 def safety_labels(scenarios: list[Scenario], config: GameConfig, horizon: int) -> np.ndarray:
-    """What a safety head learns (``train.safety_horizon``) of states ``scenarios``, as ``(scenarios,)`` bit
+    """What a safety head learns (``teacher.safety_horizon``) of states ``scenarios``, as ``(scenarios,)`` bit
     masks of joint actions (the planner on the true state): those that start ``horizon`` steps free of
     collisions and formation breaks."""
     return surviving_first_moves_many(scenarios, config=config, horizon=horizon)

@@ -37,10 +37,8 @@ def replay_frame_shape(run: RunConfig) -> tuple[int, int, int]:
 
 
 def module_of_agent(run: RunConfig) -> list[str]:
-    """The module (policy) id of each agent, leader first."""
-    if run.train.followers_share_policy:
-        return ["leader"] + ["follower"] * run.game.n_followers
-    return run.game.agent_names
+    """The module (policy) id of each agent, leader first: the followers share one."""
+    return ["leader"] + ["follower"] * run.game.n_followers
 
 
 def answers_leader(run: RunConfig, module: str) -> bool:
@@ -67,8 +65,8 @@ def network_specs(run: RunConfig) -> dict[str, NetworkSpec]:
             # and right
             window = (math.ceil(up * rows), math.ceil((down + 1) * rows), math.ceil((side + 1) * cols))
     return {m: NetworkSpec(obs_shape=shape, high=float(obs_space.high.max()), hidden=t.hidden, channels=t.channels,
-                           window=window, compass=t.destination_compass, frame_channels=frame_channels,
+                           window=window, frame_channels=frame_channels,
                            cells=(game.height, game.width) if per_cell else None, forecast=t.obstacle_forecast,
-                           answers_leader=answers_leader(run, m), safety=t.safety_head,
-                           safety_encoder=t.safety_encoder)
+                           answers_leader=answers_leader(run, m), safety=run.safety_head,
+                           safety_encoder=run.safety_head and run.teacher.safety_encoder)
             for m in sorted(set(module_of_agent(run)))}

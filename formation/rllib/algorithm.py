@@ -58,11 +58,7 @@ from formation.rllib.rollout_actor import RolloutActor
 
 
 def policy_mapping_fn(agent_id, episode=None, **kwargs) -> str:
-    """Agents to policies when every agent has its own (``followers_share_policy: false``)."""
-    return agent_id
-
-
-def shared_follower_mapping_fn(agent_id, episode=None, **kwargs) -> str:
+    """The leader has its own policy; the followers share one."""
     return "leader" if agent_id == "leader" else "follower"
 
 
@@ -98,8 +94,8 @@ NOT_HONOURED: dict[str, str] = {
     "noisy": "it explores epsilon-greedily: train.epsilon_start, epsilon_end, epsilon_env_steps, exploration",
     "sigma0": "it explores epsilon-greedily: train.epsilon_start, epsilon_end, epsilon_env_steps, exploration",
     "hiddens": "the networks are the run config's: train.hidden, train.channels, train.leader_window",
-    "td_error_loss_fn": "its loss is formation.recipe.loss.dqn_loss (Huber TD error plus the large margin: "
-                        "train.margin, margin_gap)",
+    "td_error_loss_fn": "its loss is formation.recipe.loss.dqn_loss (Huber TD error, plus the teacher's large "
+                        "margin: teacher.margin, margin_gap)",
     "categorical_distribution_temperature": "its Q-values are not distributional",
     "adam_epsilon": "the learner's Adam keeps torch's default eps",
     "training_intensity": "learner updates per env step are train.replay_ratio",
@@ -186,7 +182,7 @@ class RunConfigFields:
         for attr in (*self.run_fields, "epsilon"):
             if _unresolved(getattr(self, attr)):
                 raise ConfigError(f"{attr}: {getattr(self, attr)!r} is a Tune search space; tune.Tuner resolves it")
-        run = RunConfig.from_dict(self.formation_run)
+        run = RunConfig.from_saved(self.formation_run)  # a checkpoint of an earlier version keeps what it trained with
         if self._is_frozen:
             _FROZEN_RUNS[self] = run
         return run
@@ -239,15 +235,15 @@ class FormationDQNConfig(RunConfigFields, DQNConfig):
     # fields the learner reads through its config
     @property
     def margin(self) -> float:
-        return self.run.train.margin
+        return self.run.teacher.margin if self.run.teacher is not None else 0.0
 
     @property
     def margin_gap(self) -> float:
-        return self.run.train.margin_gap
+        return self.run.teacher.margin_gap if self.run.teacher is not None else 0.0
 
     @property
     def safety_weight(self) -> float:
-        return self.run.train.safety_weight
+        return self.run.teacher.safety_weight if self.run.teacher is not None else 0.0
 
     @property
     def prioritized(self) -> bool:
@@ -304,8 +300,8 @@ class StockFormationDQNConfig(RunConfigFields, DQNConfig):
 
 
 # the run config's keys that train.path: stock requires
-STOCK_TRAIN = dict(path="stock", shaping=0.0, demonstrations=0.0, margin=0.0, prioritized=False, dagger=False,
-                   follower_answers_leader=False)
+STOCK_TRAIN = dict(path="stock", shaping=0.0, prioritized=False, follower_answers_leader=False,
+                   reward_formation_kept=None, team_reward=False)
 
 
 def build_stock_config(run: RunConfig) -> StockFormationDQNConfig:
@@ -313,13 +309,12 @@ def build_stock_config(run: RunConfig) -> StockFormationDQNConfig:
     from formation.rllib.env import register
 
     t, res = run.train, run.resources
-    mapping = shared_follower_mapping_fn if t.followers_share_policy else policy_mapping_fn
     config = (
         StockFormationDQNConfig()
         .environment(register(), env_config=run.game.to_dict())
         .env_runners(rollout_fragment_length=t.steps_per_sample, create_local_env_runner=res.num_rollout_actors == 0)
         .learners(num_learners=0 if res.num_gpus_per_learner == 0 else 1)
-        .multi_agent(policies=set(module_specs(run)), policy_mapping_fn=mapping)
+        .multi_agent(policies=set(module_specs(run)), policy_mapping_fn=policy_mapping_fn)
         .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs=module_specs(run)))
         .training(double_q=True, dueling=True, tau=1.0, grad_clip_by="global_norm",
                   target_network_update_freq=int(t.target_update_every / t.replay_ratio),
@@ -345,10 +340,9 @@ def build_formation_config(run: RunConfig) -> FormationDQNConfig:
     """The formation path's config: the run config (``formation_run``, which sets the RLlib fields it names:
     ``RUN_FIELDS``), one module per policy and its mapping."""
     specs = module_specs(run)
-    mapping = shared_follower_mapping_fn if run.train.followers_share_policy else policy_mapping_fn
     config = (
         FormationDQNConfig()
-        .multi_agent(policies=set(specs), policy_mapping_fn=mapping)
+        .multi_agent(policies=set(specs), policy_mapping_fn=policy_mapping_fn)
         .rl_module(rl_module_spec=MultiRLModuleSpec(rl_module_specs=specs))
         .training(grad_clip_by="global_norm")
         .reporting(min_sample_timesteps_per_iteration=0, min_time_s_per_iteration=1.0)
@@ -478,7 +472,7 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
             remote_worker_ids=runner_ids, local_env_runner=False)
         agents = module_of_agent(self.run)
         answering = [m for m in set(agents) if answers_leader(self.run, m)]
-        safety = self.run.train.safety_head
+        safety = self.run.safety_head
         self.learner_group.foreach_learner(lambda learner: learner.set_replays(replays, agents, answering, safety))
 
     def restore_env_runners(self, env_runner_group):

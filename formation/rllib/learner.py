@@ -1,4 +1,5 @@
-"""The learner: pulls batches from the replay actor itself and updates every agent's DQN.
+"""The learner: pulls batches from the replay actor itself and updates every agent's DQN, RLlib's Learner around the
+recipe's update (``formation.recipe.learn.forward`` in the modules, ``formation.recipe.loss``).
 
 It runs inside RLlib's LearnerGroup (a Ray actor, on a GPU when the config asks), so batches go
 replay actor -> learner without passing the driver. The next batch is requested before the
@@ -23,6 +24,7 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
+from formation.recipe.learn import sample_priorities
 from formation.recipe.loss import ACTIONS, NEXT_OBS, OBS, dqn_loss, module_batches
 from formation.recipe.stopwatch import Stopwatch
 from formation.rllib.module import PREPARED_NEXT_OBS, PREPARED_OBS, SAFETY_LOGITS
@@ -173,7 +175,7 @@ class FormationLearner(DQNTorchLearner):
                     self.metrics.log_value((module_id, key), value, window=1)
             if not self.config.prioritized:
                 return None
-            return np.stack([self._priority[m].reshape(-1, n).max(0) for m in batches]).max(0)
+            return sample_priorities({m: self._priority[m] for m in batches}, n)
 
     def get_state(self, components=None, *, not_components=None, **kwargs):
         state = super().get_state(components, not_components=not_components, **kwargs)

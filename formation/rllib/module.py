@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 from ray.rllib.algorithms.dqn.dqn_learner import QF_NEXT_PREDS, QF_PREDS, QF_TARGET_NEXT_PREDS
 from ray.rllib.core.columns import Columns
@@ -24,11 +25,13 @@ from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, QNetAPI, TargetNetwo
 from ray.rllib.core.rl_module.torch import TorchRLModule
 from ray.rllib.utils.schedules.scheduler import Scheduler
 
+from formation.recipe.collect import epsilon_greedy
+from formation.recipe.learn import forward
 from formation.recipe.qnet import N_ACTIONS, NetworkSpec
 
 # a batch's observations as DuelingQNetwork.prepare makes them, when the learner prepared them already
 PREPARED_OBS, PREPARED_NEXT_OBS = "prepared_obs", "prepared_next_obs"
-SAFETY_LOGITS = "safety_logits"  # a network with a safety head: its (N, 16) logits (train.safety_horizon)
+SAFETY_LOGITS = "safety_logits"  # a network with a safety head: its (N, 16) logits (teacher.safety_horizon)
 
 
 class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI):
@@ -37,6 +40,7 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
         self.q_network = NetworkSpec.from_dict(cfg["network"]).build()
         # RLlib's DQNConfig puts an epsilon schedule into every module's model_config.
         self.epsilon_schedule = Scheduler(fixed_value_or_schedule=cfg.get("epsilon", 0.05), framework="torch")
+        self._rng = np.random.default_rng()
 
     # -- QNetAPI
     def compute_q_values(self, batch: dict[str, Any]) -> dict[str, Any]:
@@ -66,24 +70,18 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
         return {Columns.ACTIONS: self.greedy_actions(batch[Columns.OBS])}
 
     def _forward_exploration(self, batch: dict[str, Any], t: int = 0, **kwargs) -> dict[str, Any]:
+        """RLlib's EnvRunners (the stock path): each agent on its own, the recipe's ``epsilon_greedy``."""
         greedy = self.greedy_actions(batch[Columns.OBS])
         self.epsilon_schedule.update(t)
-        eps = self.epsilon_schedule.get_current_value()
-        explore = torch.rand(greedy.shape, device=greedy.device) < eps
-        random = torch.randint(0, N_ACTIONS, greedy.shape, device=greedy.device)
-        return {Columns.ACTIONS: torch.where(explore, random, greedy)}
+        epsilon = float(self.epsilon_schedule.get_current_value())
+        actions = epsilon_greedy(greedy.cpu().numpy()[:, None], epsilon, self._rng, joint=False)[:, 0]
+        return {Columns.ACTIONS: torch.from_numpy(actions).to(greedy.device)}
 
     def _forward_train(self, batch: dict[str, Any], **kwargs) -> dict[str, Any]:
-        """Q-values of the observations, and of the next ones by the network and its target. The layers
-        without weights run once per batch (``DuelingQNetwork.prepare``): on the next observations for
-        both networks, and not at all where the batch brings them prepared (``PREPARED_OBS``,
-        ``PREPARED_NEXT_OBS``: the learner prepares once for every module that prepares alike)."""
-        net = self.q_network
-        x = batch[PREPARED_OBS] if PREPARED_OBS in batch else net.prepare(batch[Columns.OBS])
-        features = net.features(x)
-        q = net.q_of(features)
-        out = {} if net.safety is None else {SAFETY_LOGITS: net.safety_logits(x, features)}
-        with torch.no_grad():  # targets only: no backward pass through the next observations
-            x_next = batch[PREPARED_NEXT_OBS] if PREPARED_NEXT_OBS in batch else net.prepare(batch[Columns.NEXT_OBS])
-            q_next, q_target_next = net.q_values(x_next), self._target_q_network.q_values(x_next)
-        return {QF_PREDS: q, QF_NEXT_PREDS: q_next, QF_TARGET_NEXT_PREDS: q_target_next, **out}
+        """``formation.recipe.learn.forward``: the layers without weights are skipped where the batch brings the
+        observations prepared (``PREPARED_OBS``, ``PREPARED_NEXT_OBS``: the learner prepares once for every module
+        that prepares alike)."""
+        out = forward(self.q_network, self._target_q_network, batch[Columns.OBS], batch[Columns.NEXT_OBS],
+                      batch.get(PREPARED_OBS), batch.get(PREPARED_NEXT_OBS))
+        return {QF_PREDS: out["q"], QF_NEXT_PREDS: out["q_next"], QF_TARGET_NEXT_PREDS: out["q_target_next"],
+                **({SAFETY_LOGITS: out["safety_logits"]} if "safety_logits" in out else {})}

@@ -1,0 +1,83 @@
+"""Updating: one learner update of every module of the team on a replay sample, in plain torch.
+
+``forward`` is a module's pass over its batch (the online network on the observations, the network and its target
+copy on the next ones); the RLlib module (``formation.rllib.module``) runs it inside RLlib's learner, and
+``Learner`` runs it with its own Adam optimizers in the single-process loop (``formation.recipe.loop``). Both then
+take the loss and priorities of ``formation.recipe.loss.dqn_loss``. No Ray.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+
+from formation.recipe.config import RunConfig
+from formation.recipe.loss import NEXT_OBS, OBS, dqn_loss, module_batches
+from formation.recipe.qnet import DuelingQNetwork
+from formation.recipe.team import answers_leader, module_of_agent
+
+
+def forward(net: DuelingQNetwork, target: DuelingQNetwork, obs: torch.Tensor, next_obs: torch.Tensor,
+            x: torch.Tensor | None = None, x_next: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Q-values of ``obs`` (``q``), and of ``next_obs`` by the network and its target (``q_next``, ``q_target_next``,
+    no gradient), and the safety head's logits (``safety_logits``) where the network has one. ``x``, ``x_next``:
+    the observations already through the layers without weights (``DuelingQNetwork.prepare``), where the caller
+    prepared them once for several modules."""
+    x = net.prepare(obs) if x is None else x
+    features = net.features(x)
+    out = {"q": net.q_of(features)}
+    if net.safety is not None:
+        out["safety_logits"] = net.safety_logits(x, features)
+    with torch.no_grad():  # targets only: no backward pass through the next observations
+        x_next = net.prepare(next_obs) if x_next is None else x_next
+        out["q_next"], out["q_target_next"] = net.q_values(x_next), target.q_values(x_next)
+    return out
+
+
+def sample_priorities(per_module: dict[str, np.ndarray], n: int) -> np.ndarray:
+    """A replay sample's new priorities from each module's (``dqn_loss``; a module of k agents has k rows per
+    step): a step's largest, so a step any agent gets wrong comes back."""
+    return np.stack([np.asarray(p).reshape(-1, n).max(0) for p in per_module.values()]).max(0)
+
+
+class Learner:
+    """The team's networks, their target copies and Adam optimizers: ``update`` is one learner update of every
+    module on a replay sample (``formation.recipe.replay.FrameReplay.sample``)."""
+
+    def __init__(self, run: RunConfig, networks: dict[str, DuelingQNetwork]):
+        self.run, self.networks = run, networks
+        self.targets = {m: copy.deepcopy(net).requires_grad_(False) for m, net in networks.items()}
+        self.optimizers = {m: torch.optim.Adam(net.parameters(), lr=run.train.lr) for m, net in networks.items()}
+        self.agent_modules = module_of_agent(run)
+        self.answering = frozenset(m for m in networks if answers_leader(run, m))
+        teacher = run.teacher
+        self.margin, self.margin_gap = (teacher.margin, teacher.margin_gap) if teacher is not None else (0.0, 0.0)
+        self.safety_weight = teacher.safety_weight if teacher is not None else 0.0
+        self.updates = 0
+
+    def update(self, sample: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, dict[str, float]]]:
+        """One update of every module; the sample's new priorities (the largest over modules) and each module's
+        statistics (``dqn_loss``)."""
+        t = self.run.train
+        batches = module_batches(sample, self.agent_modules, self.answering, self.run.safety_head)
+        priorities, stats = {}, {}
+        for module, columns in batches.items():
+            batch = {key: torch.from_numpy(np.asarray(value)) for key, value in columns.items()}
+            out = forward(self.networks[module], self.targets[module], batch[OBS], batch[NEXT_OBS])
+            loss, priority, stats[module] = dqn_loss(batch, out["q"], out["q_next"], out["q_target_next"],
+                                                     self.margin, self.margin_gap, out.get("safety_logits"),
+                                                     self.safety_weight)
+            optimizer = self.optimizers[module]
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(self.networks[module].parameters(), t.grad_clip)
+            optimizer.step()
+            stats[module]["total_loss"] = loss.item()
+            priorities[module] = priority.numpy()
+        self.updates += 1
+        if self.updates % t.target_update_every == 0:  # the target copies follow every target_update_every updates
+            for module, net in self.networks.items():
+                self.targets[module].load_state_dict(net.state_dict())
+        return sample_priorities(priorities, len(sample["ids"])), stats

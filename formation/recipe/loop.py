@@ -1,0 +1,124 @@
+"""The recipe in one process, top to bottom, without Ray: collect, store, learn, evaluate.
+
+    formation train CONFIG --no-ray --out DIR
+    # or, from Python:
+    from formation.recipe.config import RunConfig
+    from formation.recipe.loop import train
+    summary = train(RunConfig.load("configs/small.yaml"), "runs/small")
+
+It runs the very functions of the distributed path (the rollout actors' ``Collector``, the replay actors'
+``FrameReplay``, the learner's ``Learner``: ``forward`` and ``dqn_loss``), one after the other, on one core: the
+reference a reader can follow, and what the learning tests train with. The folder it writes holds ``config.yaml``,
+``metrics.jsonl`` (a line per evaluation), ``result.json`` (the final greedy evaluation) and the team as an export
+(``policy.json``, ``<module>.pt``), which ``formation evaluate DIR`` and ``formation.policy.load(DIR)`` read. It
+keeps no checkpoints and cannot resume: a long run is a Ray run (``formation train CONFIG``).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from formation.evaluate import play_greedy
+from formation.policy import Policy, export
+from formation.recipe.collect import Collector, epsilon_at
+from formation.recipe.config import RunConfig
+from formation.recipe.learn import Learner
+from formation.recipe.replay import FrameReplay
+from formation.recipe.team import module_of_agent, network_specs, replay_frame_shape
+
+
+def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], None] = print) -> dict:
+    """Train the team of ``run`` for ``train.total_env_steps`` env steps; the final greedy evaluation's summary
+    (``formation.evaluate.play_greedy``). With ``out``, the run folder described above."""
+    # -- boilerplate: seeding and the run folder
+    t = run.train
+    torch.manual_seed(t.seed)
+    torch.set_num_threads(1)  # one core, as a rollout actor or a CPU learner of the distributed path has
+    out = Path(out) if out is not None else None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "config.yaml").write_text(yaml.safe_dump(run.to_dict(), sort_keys=False))
+        metrics = (out / "metrics.jsonl").open("w")
+
+    # -- the team's networks, its games, the replay and the learner
+    specs = network_specs(run)
+    networks = {module: spec.build() for module, spec in specs.items()}
+    collector = Collector(run)
+    replay = FrameReplay(t.replay_capacity, replay_frame_shape(run), 1 + run.game.n_followers, run.game.frame_stack,
+                         seed=t.seed, prioritized=t.prioritized)
+    learner = Learner(run, networks)
+    steps_per_collect = run.resources.games_per_actor * t.steps_per_sample
+    env_steps, next_eval, started, episodes = 0, run.eval.every_env_steps, time.perf_counter(), []
+
+    while env_steps < t.total_env_steps:
+        # -- collect: every game plays steps_per_sample steps, epsilon-greedily (the teacher labels them, if any)
+        records, ended = collector.collect(networks, t.steps_per_sample, env_steps)
+        replay.add(records)
+        env_steps += steps_per_collect
+        episodes += ended
+
+        # -- learn: the updates the replay ratio owes (updates per env step), from learning_starts on
+        if replay.size >= max(t.learning_starts, t.batch_size):
+            while learner.updates < t.replay_ratio * env_steps:
+                sample = replay.sample(t.batch_size, n_step=t.n_step, gamma=t.gamma)
+                priorities, stats = learner.update(sample)
+                if t.prioritized:
+                    replay.update_priorities(sample["ids"], priorities)
+
+        # -- evaluate: greedy play on held-out scenarios, every eval.every_env_steps
+        if env_steps >= next_eval or env_steps >= t.total_env_steps:
+            summary = evaluate(run, networks)
+            row = {"env_steps": env_steps, "learner_updates": learner.updates,
+                   "seconds": time.perf_counter() - started, "epsilon": epsilon_at(env_steps, t),
+                   **{f"greedy/{k}": summary[k] for k in ("success", "steps_success_mean")},
+                   **explored(episodes)}
+            if learner.updates:
+                row.update({f"learner/{m}/{k}": v for m, values in stats.items() for k, v in values.items()})
+            episodes = []
+            say(f"{env_steps:>9,}/{t.total_env_steps:,} env steps  greedy success {summary['success']:6.1%}  "
+                f"{env_steps / row['seconds']:6,.0f} env steps/s")
+            if out is not None:
+                metrics.write(json.dumps(row) + "\n")
+                metrics.flush()
+            next_eval += run.eval.every_env_steps
+
+    # -- boilerplate: the result and the team, as `formation export` writes it
+    if out is not None:
+        metrics.close()
+        (out / "result.json").write_text(json.dumps({"env_steps": env_steps, "seed": run.eval.seed,
+                                                     "greedy": summary}, indent=2))
+        team = policy_of(run, networks, source=str(out), env_steps=env_steps)
+        team.training = {"config": run.to_dict(), "env_steps": env_steps, "learner_updates": learner.updates,
+                         "wall_seconds": round(time.perf_counter() - started, 3),
+                         "evaluation": {"env_steps": env_steps, "seed": run.eval.seed, "greedy": summary}}
+        export(team, out)
+    return summary
+
+
+def policy_of(run: RunConfig, networks: dict[str, torch.nn.Module], source: str, env_steps: int | None = None):
+    """A ``formation.policy.Policy`` of copies of ``networks`` (a Policy freezes the networks it holds)."""
+    return Policy(run.game, {m: copy.deepcopy(net) for m, net in networks.items()}, network_specs(run),
+                  module_of_agent(run), source=source, env_steps=env_steps,
+                  eval_settings={"episodes": run.eval.episodes, "seed": run.eval.seed})
+
+
+def evaluate(run: RunConfig, networks: dict[str, torch.nn.Module]) -> dict:
+    """Greedy play of the team as it is now on ``eval.episodes`` held-out scenarios: the summary rates."""
+    team = policy_of(run, networks, source="training")
+    return play_greedy(run.game, team.act_batch, run.eval.episodes, run.eval.seed)["summary"]
+
+
+def explored(episodes: list[dict]) -> dict[str, float]:
+    """The training episodes' rates (exploring, so below greedy play), as ``explore/<key>``."""
+    if not episodes:
+        return {}
+    return {f"explore/{key}": float(np.mean([e[key] for e in episodes]))
+            for key in ("success", "collided", "broken", "truncated")}
