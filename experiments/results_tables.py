@@ -14,7 +14,7 @@ Learning from the reward alone (docs/results/reward_only/): `settingK.json` is t
 that measured what each ingredient of the reward-only recipe gained (INGREDIENTS names them). Every
 reward-only report must record a training without the planner.
 
-Prints the tables as Markdown.
+Prints the tables as Markdown; `--readme`, README.md's settings table.
 """
 
 from __future__ import annotations
@@ -110,14 +110,14 @@ INGREDIENTS = {
     "grid_kept0_team_seed0": "setting 1, grid: kept 0, team reward",
     "grid_kept0_team_seed1": "setting 1, grid: kept 0, team reward",
     "grid_kept0_team_noshaping_seed0": "setting 1, grid: kept 0, team reward, no shaping",
-    "pixels_setting1_nocompass_seed0": "setting 1, pixels: kept 0, team reward",
-    "pixels_setting1_seed0": "setting 1, pixels: kept 0, team reward, compass (`configs/reward_only/setting1.yaml`)",
-    "pixels_setting2_nocompass_seed0": "setting 2, pixels: kept 0, team reward",
-    "pixels_setting2_seed0": "setting 2, pixels: kept 0, team reward, compass (`configs/reward_only/setting2.yaml`)",
-    "pixels_setting3_nocompass_seed0": "setting 3, pixels: kept 0, team reward",
-    "pixels_setting3_seed0": "setting 3, pixels: kept 0, team reward, compass (`configs/reward_only/setting3.yaml`)",
-    "pixels_setting4_nocompass_seed0": "setting 4, pixels: kept 0, team reward",
-    "pixels_setting4_seed0": "setting 4, pixels: kept 0, team reward, compass (`configs/reward_only/setting4.yaml`)",
+    "pixels_setting1_nocompass_seed0": "setting 1, pixels: kept 0, team reward (`configs/reward_only/setting1.yaml`)",
+    "pixels_setting1_seed0": "setting 1, pixels: kept 0, team reward, the destination compass (removed)",
+    "pixels_setting2_nocompass_seed0": "setting 2, pixels: kept 0, team reward (`configs/reward_only/setting2.yaml`)",
+    "pixels_setting2_seed0": "setting 2, pixels: kept 0, team reward, the destination compass (removed)",
+    "pixels_setting3_nocompass_seed0": "setting 3, pixels: kept 0, team reward (`configs/reward_only/setting3.yaml`)",
+    "pixels_setting3_seed0": "setting 3, pixels: kept 0, team reward, the destination compass (removed)",
+    "pixels_setting4_nocompass_seed0": "setting 4, pixels: kept 0, team reward (`configs/reward_only/setting4.yaml`)",
+    "pixels_setting4_seed0": "setting 4, pixels: kept 0, team reward, the destination compass (removed)",
 }
 
 
@@ -165,8 +165,31 @@ def reward_only_tables() -> None:
         print("| " + " | ".join(cells) + " |")
 
 
+# the README's settings table: each setting's board, as docs/GAME.md gives them
+BOARDS = {1: "25x25, 3 obstacles, side by side", 2: "25x25, 3 obstacles, one behind the other",
+          3: "50x50, 8 obstacles, side by side", 4: "50x50, 8 obstacles, one behind the other"}
+
+
+def readme_table() -> None:
+    """README.md's four rows: each setting's shipped teams on the test scenarios, from the reward alone (the
+    default recipe) and with the teacher."""
+    print("| setting | board, formation | default recipe: success, steps over the planner's | "
+          "teacher recipe: success, steps over the planner's |\n" + "| --- " * 4 + "|")
+    for k, board in BOARDS.items():
+        cells = [str(k), board]
+        for path in (RESULTS / "reward_only" / f"setting{k}.json", RESULTS / f"setting{k}.json"):
+            r = json.loads(path.read_text())
+            ours, planner = r["steps_success_mean"], r["planner"]["planner_steps_on_successes_mean"]
+            cells.append(f"**{pct(r['success'])}**, +{100 * (ours / planner - 1):.1f}%")
+        print("| " + " | ".join(cells) + " |")
+
+
 def main() -> None:
-    parser(__doc__).parse_args()
+    args = parser(__doc__)
+    args.add_argument("--readme", action="store_true", help="print README.md's settings table alone")
+    if args.parse_args().readme:
+        readme_table()
+        return
     hours = json.loads((RESULTS / "training_hours.json").read_text())
     reports = {path.stem: json.loads(path.read_text()) for path in RESULTS.glob("setting*.json")}
     runs = sorted(stem for stem in reports if "_seed" in stem)

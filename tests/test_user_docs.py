@@ -112,3 +112,12 @@ def test_results_tables_are_those_results_tables_py_prints():
     missing = [table.splitlines()[0] for table in tables if table not in results]
     assert not missing, ("docs/RESULTS.md lacks these tables as experiments/results_tables.py prints them "
                          "(rerun it and paste): " + "; ".join(missing))
+
+
+def test_the_readmes_settings_table_is_the_one_results_tables_py_prints():
+    """README.md's figures come from docs/results/*.json too (`experiments/results_tables.py --readme`)."""
+    printed = subprocess.run([sys.executable, "experiments/results_tables.py", "--readme"], cwd=ROOT,
+                             capture_output=True, text=True, timeout=120, check=True).stdout.strip()
+    assert printed.count("\n") == 5, printed  # a header, its rule and the four settings
+    assert printed in (ROOT / "README.md").read_text(encoding="utf-8"), (
+        "README.md lacks the settings table as `experiments/results_tables.py --readme` prints it (rerun it and paste)")
