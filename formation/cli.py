@@ -105,6 +105,7 @@ def _train_without_ray(args: argparse.Namespace) -> int:
     """``formation train --no-ray``: the recipe's single-process loop (``formation.recipe.loop``)."""
     from formation.recipe.config import RunConfig
     from formation.recipe.loop import train
+    from formation.train import code_commit, hardware, now
 
     if args.resume:
         raise ConfigError("--resume: a --no-ray run keeps no checkpoint; allowed: --resume without --no-ray")
@@ -115,7 +116,8 @@ def _train_without_ray(args: argparse.Namespace) -> int:
     run = RunConfig.load(args.config, parse_overrides(args.set))
     out = check_new_folder(Path(args.out) if args.out else Path("runs") / Path(args.config).stem, "--out")
     try:
-        summary = train(run, out, say=lambda line: print(line, flush=True))
+        record = {"started": now(), "hardware": hardware(), "commit": code_commit()}
+        summary = train(run, out, say=lambda line: print(line, flush=True), record=record)
     except KeyboardInterrupt:
         return 130
     print(f"greedy success {summary['success']:.1%} on {summary['episodes']} held-out scenarios; run folder {out}")

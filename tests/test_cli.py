@@ -93,3 +93,16 @@ def test_train_no_ray_refuses_what_it_cannot_do_in_one_line(tmp_path, capsys):
         assert main(["train", "configs/smoke.yaml", "--no-ray", *args]) == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and words in err, err
+
+
+def test_train_no_ray_leaves_a_team_that_evaluate_reads_with_how_it_was_trained(tmp_path, capsys):
+    out = tmp_path / "loop"
+    assert main(["train", "configs/smoke.yaml", "--no-ray", "--out", str(out), "--set", "train.total_env_steps=640",
+                 "--set", "eval.every_env_steps=640", "--set", "eval.episodes=20"]) == 0
+    assert "greedy success" in capsys.readouterr().out
+    assert {"config.yaml", "metrics.jsonl", "result.json", "policy.json", "leader.pt", "follower.pt"} <= {
+        p.name for p in out.iterdir()}
+    assert main(["evaluate", str(out), "--episodes", "2", "--workers", "1"]) == 0
+    trained = capsys.readouterr().out.splitlines()[1]
+    assert trained.startswith("trained: 640 env steps in ") and " CPUs), " in trained, trained
+    assert trained.endswith("; from the reward alone, no planner"), trained

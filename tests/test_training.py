@@ -75,6 +75,9 @@ def test_replay_ratio_holds_and_the_driver_never_receives_transitions(recipe_run
     # least two stacks of frames): counts, episode outcomes and learner metrics only
     frame_bytes = 9 * 9 * 4
     assert c["driver_bytes"] < 0.5 * c["env_steps"] * frame_bytes, c["driver_bytes"] / c["env_steps"]
+    # the rollout actors get the learner's weights every train.weights_every_updates updates
+    every = run.train.weights_every_updates
+    assert c["updates"] >= 2 * every and 0 <= c["updates"] - c["weights_pushed_at"] < every, c
 
 
 def test_every_kind_of_process_accounts_for_its_stages(recipe_run):

@@ -317,6 +317,9 @@ class CheckpointSettings:
 SECTIONS = {"train": TrainSettings, "resources": ResourceSettings, "eval": EvalSettings,
             "checkpoint": CheckpointSettings, "refit": RefitSettings}
 OPTIONAL_SECTIONS = {"teacher": TeacherSettings}  # absent: off
+# what train.path: stock needs: RLlib's DQN has none of the recipe's rewards, priorities or answering followers
+STOCK_TRAIN = {"shaping": 0.0, "prioritized": False, "follower_answers_leader": False, "reward_formation_kept": None,
+               "team_reward": False}
 PLANNER_FOLLOWERS = (1, 2)  # the team sizes whose joint moves the planner searches (formation.planner)
 
 
@@ -347,11 +350,10 @@ class RunConfig:
             raise ConfigError("teacher.answer_every_leader_move: true needs train.follower_answers_leader: true; "
                               "allowed: false")
         t = self.train
-        if t.path == "stock" and (t.shaping > 0 or teacher is not None or t.prioritized or t.follower_answers_leader
-                                  or t.reward_formation_kept is not None or t.team_reward):
-            raise ConfigError("train.path: stock runs RLlib's DQN on the paper's reward alone; "
-                              "set train.shaping: 0, prioritized: false, follower_answers_leader: false, "
-                              "reward_formation_kept: null, team_reward: false, and no teacher section")
+        if t.path == "stock" and (teacher is not None or any(getattr(t, k) != v for k, v in STOCK_TRAIN.items())):
+            needed = ", ".join(f"{k}: {json.dumps(v)}" for k, v in STOCK_TRAIN.items())
+            raise ConfigError(f"train.path: stock runs RLlib's DQN on the paper's reward alone; set train.{needed}, "
+                              "and no teacher section")
         if self.train.obstacle_forecast:
             if patches:
                 raise ConfigError("train.obstacle_forecast: true needs the screen read per cell; allowed: false, "

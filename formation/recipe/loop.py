@@ -35,9 +35,11 @@ from formation.recipe.replay import FrameReplay
 from formation.recipe.team import module_of_agent, network_specs, replay_frame_shape
 
 
-def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], None] = print) -> dict:
+def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], None] = print,
+          record: dict | None = None) -> dict:
     """Train the team of ``run`` for ``train.total_env_steps`` env steps; the final greedy evaluation's summary
-    (``formation.evaluate.play_greedy``). With ``out``, the run folder described above."""
+    (``formation.evaluate.play_greedy``). With ``out``, the run folder described above; ``record`` joins the
+    card's training section (the CLI's hardware and commit)."""
     # -- boilerplate: seeding and the run folder
     t = run.train
     torch.manual_seed(t.seed)
@@ -98,7 +100,8 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
         team = policy_of(run, networks, source=str(out), env_steps=env_steps)
         team.training = {"config": run.to_dict(), "env_steps": env_steps, "learner_updates": learner.updates,
                          "wall_seconds": round(time.perf_counter() - started, 3),
-                         "evaluation": {"env_steps": env_steps, "seed": run.eval.seed, "greedy": summary}}
+                         "evaluation": {"env_steps": env_steps, "seed": run.eval.seed, "greedy": summary},
+                         **(record or {})}
         export(team, out)
     return summary
 

@@ -47,7 +47,7 @@ from ray.rllib.utils.metrics import (
 
 from formation.config import ConfigError, RunFailed
 from formation.evaluate import play_greedy
-from formation.recipe.config import RunConfig, TrainSettings
+from formation.recipe.config import STOCK_TRAIN, RunConfig, TrainSettings
 from formation.recipe.rollout import STARTS
 from formation.recipe.stopwatch import Stopwatch, add_seconds
 from formation.recipe.team import answers_leader, module_of_agent, network_specs, replay_frame_shape, spaces_of
@@ -296,12 +296,7 @@ class StockFormationDQNConfig(RunConfigFields, DQNConfig):
 
     def __init__(self, algo_class=None):
         super().__init__(algo_class=algo_class or StockFormationDQN)
-        self.formation_run = RunConfig(train=TrainSettings(**STOCK_TRAIN)).to_dict()
-
-
-# the run config's keys that train.path: stock requires
-STOCK_TRAIN = dict(path="stock", shaping=0.0, prioritized=False, follower_answers_leader=False,
-                   reward_formation_kept=None, team_reward=False)
+        self.formation_run = RunConfig(train=TrainSettings(path="stock", **STOCK_TRAIN)).to_dict()
 
 
 def build_stock_config(run: RunConfig) -> StockFormationDQNConfig:
