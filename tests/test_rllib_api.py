@@ -76,7 +76,10 @@ def test_invalid_values_are_the_run_configs_one_line_error(kwargs, key):
     ("training", {"num_atoms": 51}), ("training", {"noisy": True}), ("training", {"td_error_loss_fn": "mse"}),
     ("training", {"training_intensity": 4.0}), ("training", {"replay_buffer_config": {"capacity": 10}}),
     ("env_runners", {"rollout_fragment_length": 50}), ("evaluation", {"evaluation_interval": 1}),
-    ("learners", {"num_learners": 2}), ("environment", {"env": "CartPole-v1"})])
+    ("learners", {"num_learners": 2}), ("environment", {"env": "CartPole-v1"}),
+    ("framework", {"torch_compile_learner": True}),
+    ("training", {"optimizer": {"type": "sgd"}}), ("env_runners", {"env_to_module_connector": lambda env: []}),
+    ("env_runners", {"module_to_env_connector": lambda env: []}), ("training", {"learner_connector": lambda s: []})])
 def test_options_the_formation_path_does_not_honour_are_refused_in_one_line(method, kwargs):
     config = smoke_config()
     (key,) = kwargs

@@ -111,6 +111,11 @@ NOT_HONOURED: dict[str, str] = {
     "evaluation_interval": "greedy evaluation runs every eval.every_env_steps env steps on eval.episodes games, "
                            "reported under result['evaluation']",
     "evaluation_num_env_runners": "greedy evaluation runs in the algorithm's process (eval.episodes)",
+    "torch_compile_learner": "its learner runs torch eagerly",
+    "optimizer": "its learner's Adam takes train.lr and clips to train.grad_clip",
+    "_env_to_module_connector": "its rollout actors read the games' observations themselves, not through connectors",
+    "_module_to_env_connector": "its rollout actors turn Q-values into moves themselves (formation.recipe.collect)",
+    "_learner_connector": "its learner reads replay batches as formation.recipe.loss.module_batches splits them",
 }
 # EnvRunner hooks: the formation path's rollout actors play batched games, not RLlib episodes
 ENV_RUNNER_HOOKS = ("on_environment_created", "on_episode_created", "on_episode_start", "on_episode_step",
@@ -251,8 +256,9 @@ class FormationDQNConfig(RunConfigFields, DQNConfig):
 
 
 def _not_honoured(key: str, value, allowed: str) -> ConfigError:
-    return ConfigError(f"{key}={value!r}: the formation path does not honour it; {NOT_HONOURED[key]} (docs/CONFIG.md); "
-                       f"allowed: {allowed}, or train.path: stock (RLlib's own DQN)")
+    name = key.lstrip("_")  # a connector's attribute is private; its setter's keyword is not
+    return ConfigError(f"{name}={value!r}: the formation path does not honour it; {NOT_HONOURED[key]} "
+                       f"(docs/CONFIG.md); allowed: {allowed}, or train.path: stock (RLlib's own DQN)")
 
 
 def _same(a, b) -> bool:
