@@ -170,6 +170,27 @@ BOARDS = {1: "25x25, 3 obstacles, side by side", 2: "25x25, 3 obstacles, one beh
           3: "50x50, 8 obstacles, side by side", 4: "50x50, 8 obstacles, one behind the other"}
 
 
+def reproduced_table() -> None:
+    """Each reward-only config run again from the config alone (`reward_only/reproduced/settingK_seedS.json`, on
+    the validation scenarios) beside the run its shipped team comes from."""
+    folder = RESULTS / "reward_only" / "reproduced"
+    if not any(folder.glob("*.json")):
+        return
+    print("\n| config | seed | env steps | training | validation success (95% CI) | steps: ours / planner | "
+          "the shipped team's run |\n" + "| --- " * 7 + "|")
+    for path in sorted(folder.glob("setting*_seed*.json")):
+        r = json.loads(path.read_text())
+        trained = reward_only(r, str(path))
+        setting = path.stem.partition("_")[0]
+        shipped = json.loads((RESULTS / "reward_only" / "ingredients" / f"pixels_{setting}_nocompass_seed0.json")
+                             .read_text())
+        low, high = r["success_ci95"]
+        cells = [f"`configs/reward_only/{setting}.yaml`", str(trained["seed"]), f"{r['env_steps']:,}",
+                 f"{trained['wall_seconds'] / 60:.1f} min", f"{pct(r['success'])} ({pct(low)[:-1]}-{pct(high)})",
+                 steps_cell(r), f"{pct(shipped['success'])}, {steps_cell(shipped)}"]
+        print("| " + " | ".join(cells) + " |")
+
+
 def readme_table() -> None:
     """README.md's four rows: each setting's shipped teams on the test scenarios, from the reward alone (the
     default recipe) and with the teacher."""

@@ -67,15 +67,19 @@ def test_the_rayjob_runs_formation_train_on_a_gpu_learner_and_cpu_rollout_worker
     assert cluster["rayVersion"] == pinned_ray_version()
     pods = [("head", cluster["headGroupSpec"]["template"])]
     pods += [(g["groupName"], g["template"]) for g in cluster["workerGroupSpecs"]]
+    # KubeRay (v1.5.1 or newer) sets the token of this secret (key auth_token) on every Ray container; the
+    # submitter reads the same one
+    assert cluster["authOptions"] == {"mode": "token", "secretName": "formation-ray-token"}
+    submitter = {e["name"]: e for e in spec["submitterPodTemplate"]["spec"]["containers"][0]["env"]}
+    assert submitter["RAY_AUTH_MODE"]["value"] == "token"
+    assert submitter["RAY_AUTH_TOKEN"]["valueFrom"]["secretKeyRef"] == {"name": "formation-ray-token",
+                                                                       "key": "auth_token"}
+    assert "auth_token=" in (REPO / "cluster" / "rayjob.yaml").read_text()  # how its header makes the secret
     pods.append(("submitter", spec["submitterPodTemplate"]))
     gpus = {}
     for name, template in pods:
         for container in template["spec"]["containers"]:
             assert container["image"] in dockerfile_images(), (name, container["image"])
-            env = {e["name"]: e for e in container["env"]}
-            # every Ray process and the submitter share one token (Ray 2.60's authentication)
-            assert env["RAY_AUTH_MODE"]["value"] == "token"
-            assert env["RAY_AUTH_TOKEN"]["valueFrom"]["secretKeyRef"]["name"] == "formation-ray-token"
             limits = container.get("resources", {}).get("limits", {})
             gpus[name] = int(limits.get("nvidia.com/gpu", 0))
     assert gpus["gpu-learner"] == 1 and gpus["cpu-rollout"] == 0
@@ -97,6 +101,12 @@ def test_the_launcher_yaml_passes_rays_schema_and_uses_our_images():
     images |= {t["docker"]["worker_image"] for t in config["available_node_types"].values() if "docker" in t}
     assert images == dockerfile_images()
     assert config["available_node_types"]["gpu_learner"]["docker"]["worker_image"] == "formation:gpu"
+    # `ray start` turns token authentication on only where it finds a token: every node starts with it on, and
+    # gets the token made beforehand on the user's machine
+    for command in config["head_start_ray_commands"] + config["worker_start_ray_commands"]:
+        if "ray start" in command:
+            assert "RAY_AUTH_MODE=token ray start" in command, command
+    assert config["file_mounts"] == {"~/.ray/auth_token": "~/.ray/auth_token"}
 
 
 def test_the_cluster_readme_commands_use_files_and_configs_that_exist():
