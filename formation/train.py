@@ -91,18 +91,32 @@ def missing_resources(run: RunConfig, have: dict[str, float]) -> str | None:
     return None
 
 
+def resource_bundles(run: RunConfig) -> list[dict[str, float]]:
+    """What the run's actors ask Ray for: one bundle per rollout actor, and the learner's."""
+    res = run.resources
+    learner = {"CPU": 1.0} if res.num_gpus_per_learner == 0 else {"CPU": 1.0, "GPU": float(res.num_gpus_per_learner)}
+    return [{"CPU": float(res.cpus_per_rollout_actor)}] * res.num_rollout_actors + [learner]
+
+
 def check_resources(run: RunConfig, joined: bool = False) -> None:
     """Fail fast, in one line, when the run asks for more than the Ray cluster has (Ray would wait
-    for ever). On a cluster the run joined, nodes may still be joining: wait up to
-    ``resources.wait_for_resources_s`` first."""
+    for ever). On a cluster the run joined, nodes may still be joining: tell its autoscaler what the run
+    needs (``ray.autoscaler.sdk.request_resources``, so that it starts nodes before any actor waits) and
+    wait up to ``resources.wait_for_resources_s`` for them."""
     import ray
 
+    missing = missing_resources(run, ray.cluster_resources())
+    if missing is not None and joined:
+        from ray.autoscaler.sdk import request_resources
+
+        request_resources(bundles=resource_bundles(run))
     deadline = time.monotonic() + (run.resources.wait_for_resources_s if joined else 0.0)
-    while (missing := missing_resources(run, ray.cluster_resources())) is not None:
+    while missing is not None:
         if time.monotonic() >= deadline:
             waited = f" (after waiting {run.resources.wait_for_resources_s:g} s)" if joined else ""
             raise ConfigError(missing + waited)
         time.sleep(min(0.5, max(0.0, deadline - time.monotonic())))
+        missing = missing_resources(run, ray.cluster_resources())
 
 
 def checkpoint_path(out: Path) -> Path:

@@ -101,18 +101,23 @@ def test_missing_resources_name_the_field_and_what_the_cluster_has():
 
 def test_a_joined_cluster_gets_time_for_its_nodes_to_arrive(monkeypatch):
     import ray
+    import ray.autoscaler.sdk
 
     run = RunConfig.load("configs/smoke.yaml", {"resources.wait_for_resources_s": 1.5})
     answers = iter([{"CPU": 1.0}, {"CPU": 1.0}, {"CPU": 4.0}])  # a worker node joins on the third look
     monkeypatch.setattr(ray, "cluster_resources", lambda: next(answers))
+    asked = []  # the demand the autoscaler is told of, so that it starts the nodes
+    monkeypatch.setattr(ray.autoscaler.sdk, "request_resources", lambda bundles: asked.append(bundles))
     check_resources(run, joined=True)
+    assert asked == [[{"CPU": 0.5}, {"CPU": 0.5}, {"CPU": 1.0}]]  # smoke: 2 rollout actors of 0.5 CPU, the learner
     monkeypatch.setattr(ray, "cluster_resources", lambda: {"CPU": 1.0})
     started = time.monotonic()
     with pytest.raises(ConfigError, match=r"the Ray cluster has 1; .*\(after waiting 1.5 s\)"):
         check_resources(run, joined=True)
     assert 1.4 <= time.monotonic() - started < 5
     with pytest.raises(ConfigError, match="the Ray cluster has 1; lower num_rollout_actors"):
-        check_resources(run, joined=False)  # a local Ray: no waiting
+        check_resources(run, joined=False)  # a local Ray: no waiting, and no autoscaler to ask
+    assert len(asked) == 2
 
 
 def test_a_folder_is_written_whole_or_not_at_all(tmp_path):
