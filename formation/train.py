@@ -76,34 +76,14 @@ def start_ray(run: RunConfig) -> None:
         ray.init(num_cpus=os.cpu_count() or 2, include_dashboard=False, log_to_driver=False)
 
 
-def missing_resources(run: RunConfig, have: dict[str, float]) -> str | None:
-    """What the run asks for beyond ``have`` (Ray's cluster resources), as a one-line error; None if it fits."""
-    res = run.resources
-    gpus = res.num_gpus_per_learner
-    cpus = res.num_rollout_actors * res.cpus_per_rollout_actor + (1 if gpus == 0 else 0)
-    if gpus > have.get("GPU", 0):
-        return (f"resources.num_gpus_per_learner: {gpus:g} GPU asked, the Ray cluster has {have.get('GPU', 0):g}; "
-                "allowed here: 0 (the learner then runs on CPU)")
-    if cpus > have.get("CPU", 0):
-        return (f"resources.num_rollout_actors: {res.num_rollout_actors} actors x {res.cpus_per_rollout_actor:g} CPU "
-                f"+ the learner need {cpus:g} CPUs, the Ray cluster has {have.get('CPU', 0):g}; "
-                "lower num_rollout_actors or cpus_per_rollout_actor")
-    return None
-
-
-def resource_bundles(run: RunConfig) -> list[dict[str, float]]:
-    """What the run's actors ask Ray for: one bundle per rollout actor, and the learner's."""
-    res = run.resources
-    learner = {"CPU": 1.0} if res.num_gpus_per_learner == 0 else {"CPU": 1.0, "GPU": float(res.num_gpus_per_learner)}
-    return [{"CPU": float(res.cpus_per_rollout_actor)}] * res.num_rollout_actors + [learner]
-
-
 def check_resources(run: RunConfig, joined: bool = False) -> None:
     """Fail fast, in one line, when the run asks for more than the Ray cluster has (Ray would wait
     for ever). On a cluster the run joined, nodes may still be joining: tell its autoscaler what the run
     needs (``ray.autoscaler.sdk.request_resources``, so that it starts nodes before any actor waits) and
     wait up to ``resources.wait_for_resources_s`` for them."""
     import ray
+
+    from formation.rllib.algorithm import missing_resources, resource_bundles
 
     missing = missing_resources(run, ray.cluster_resources())
     if missing is not None and joined:

@@ -275,15 +275,25 @@ def test_a_rollout_actor_acts_on_whole_screens_and_pushes_only_their_cells(rollo
 # --------------------------------------------------------------------------- RLlib's own restore
 def test_rllibs_from_checkpoint_restores_a_run_that_evaluates_as_the_run_did(cluster, smoke_run):
     """``FormationDQN.from_checkpoint`` (RLlib's ``Algorithm.from_checkpoint``) of a run folder's checkpoint: the
-    run's config, counters and weights, so its greedy evaluation is the one the run wrote (the same scenarios)."""
+    run's config, counters and weights, so its greedy evaluation is the one the run wrote (the same scenarios);
+    ``resources`` replaces the saved run's, and a run the Ray at hand cannot hold is refused in one line."""
+    import dataclasses
     import json
 
     from formation.rllib.algorithm import FormationDQN
 
+    checkpoint = str(smoke_run / "checkpoint")
+    with pytest.raises(ConfigError, match=r"^resources\.num_gpus_per_learner: 1 GPU asked, the Ray cluster has 0"):
+        FormationDQN.from_checkpoint(checkpoint, resources={"num_gpus_per_learner": 1})
+    with pytest.raises(ConfigError, match=r"^resources\.num_rollout_actors: -1 is not allowed"):
+        FormationDQN.from_checkpoint(checkpoint, resources={"num_rollout_actors": -1})
     result = json.loads((smoke_run / "result.json").read_text())
-    algo = FormationDQN.from_checkpoint(str(smoke_run / "checkpoint"))
+    algo = FormationDQN.from_checkpoint(checkpoint, resources={"num_rollout_actors": 1})
     try:
-        assert algo.run == RunConfig.load_saved(smoke_run / "config.yaml")
+        saved = RunConfig.load_saved(smoke_run / "config.yaml")
+        assert algo.run == dataclasses.replace(saved, resources=dataclasses.replace(saved.resources,
+                                                                                    num_rollout_actors=1))
+        assert algo.env_runner_group.num_remote_env_runners() == 1
         assert algo.counters["env_steps"] == result["env_steps"]
         assert algo.evaluate_greedy()["success"] == result["greedy"]["success"]
     finally:

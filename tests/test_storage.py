@@ -8,8 +8,9 @@ import pytest
 
 from formation.config import ConfigError
 from formation.recipe.config import RunConfig
+from formation.rllib.algorithm import missing_resources
 from formation.storage import RemoteRun, is_uri, local_run_folder, staging_folder
-from formation.train import check_resources, missing_resources
+from formation.train import check_resources
 
 
 def make_run(folder, marker: str) -> None:

@@ -19,6 +19,7 @@ import math
 import pickle
 import time
 import weakref
+from pathlib import Path
 from typing import Any
 
 import ray
@@ -366,6 +367,28 @@ def learner_values(results) -> list:
     return values
 
 
+def missing_resources(run: RunConfig, have: dict[str, float]) -> str | None:
+    """What the run asks for beyond ``have`` (Ray's cluster resources), as a one-line error; None if it fits."""
+    res = run.resources
+    gpus = res.num_gpus_per_learner
+    cpus = res.num_rollout_actors * res.cpus_per_rollout_actor + (1 if gpus == 0 else 0)
+    if gpus > have.get("GPU", 0):
+        return (f"resources.num_gpus_per_learner: {gpus:g} GPU asked, the Ray cluster has {have.get('GPU', 0):g}; "
+                "allowed here: 0 (the learner then runs on CPU)")
+    if cpus > have.get("CPU", 0):
+        return (f"resources.num_rollout_actors: {res.num_rollout_actors} actors x {res.cpus_per_rollout_actor:g} CPU "
+                f"+ the learner need {cpus:g} CPUs, the Ray cluster has {have.get('CPU', 0):g}; "
+                "lower num_rollout_actors or cpus_per_rollout_actor")
+    return None
+
+
+def resource_bundles(run: RunConfig) -> list[dict[str, float]]:
+    """What the run's actors ask Ray for: one bundle per rollout actor, and the learner's."""
+    res = run.resources
+    learner = {"CPU": 1.0} if res.num_gpus_per_learner == 0 else {"GPU": float(res.num_gpus_per_learner)}
+    return [{"CPU": float(res.cpus_per_rollout_actor)}] * res.num_rollout_actors + [learner]
+
+
 class GreedyEvaluationMixin:
     """What both paths share: counters, greedy evaluation, and their place in checkpoints."""
 
@@ -438,6 +461,27 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
     @classmethod
     def get_default_config(cls) -> FormationDQNConfig:
         return FormationDQNConfig()
+
+    @classmethod
+    def from_checkpoint(cls, path, filesystem=None, *, resources: dict | None = None, **kwargs):
+        """RLlib's ``Algorithm.from_checkpoint``, with ``resources``: keys of the run config's ``resources`` section
+        that replace the saved run's, so that a run saved on a cluster restores on a laptop. A run that asks for
+        more than the Ray it restores into has is refused in one line (``missing_resources``), instead of waiting
+        for ever."""
+        if "config" not in kwargs:
+            with open(Path(path) / cls.CLASS_AND_CTOR_ARGS_FILE_NAME, "rb") as f:
+                state = pickle.load(f)["ctor_args_and_kwargs"][0][0]  # the saved config's get_state()
+            config = FormationDQNConfig().update_from_dict(state)
+            values = config.formation_run
+            values["resources"] = {**values.get("resources", {}), **(resources or {})}
+            config.formation_run = values  # a bad key or value: the run config's one-line error
+            kwargs["config"] = config
+        if not ray.is_initialized():
+            ray.init()  # as building the algorithm would
+        missing = missing_resources(kwargs["config"].run, ray.cluster_resources())
+        if missing is not None:
+            raise ConfigError(missing)
+        return super().from_checkpoint(path, filesystem, **kwargs)
 
     def setup(self, config: FormationDQNConfig) -> None:
         super().setup(config)
