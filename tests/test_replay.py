@@ -245,3 +245,17 @@ def test_labels_and_answers_come_back_with_their_own_steps():
     assert (batch["answers"][stream0, 0] == -1).all()
     assert (batch["labels"][~stream0] == -1).all() and (batch["answers"][~stream0] == -1).all()
     assert stream0.any() and (~stream0).any()
+
+
+def test_a_replay_shard_asks_ray_for_the_memory_it_takes_and_shards_spread_over_nodes():
+    from formation.recipe.config import RunConfig
+    from formation.recipe.team import replay_frame_shape
+    from formation.rllib.algorithm import replay_shard
+
+    run = RunConfig.load("configs/reward_only/setting3.yaml", {"resources.num_replay_shards": 4})
+    shard = replay_shard(run)
+    capacity, frame_shape, agents, stack = shard["args"]
+    assert (capacity, frame_shape, agents, stack) == (25_000, replay_frame_shape(run), 2, 4)
+    # 25k records of a 50x50 board's cells, 3 colours: the frames alone are 187.5 MB
+    assert 187_500_000 < shard["options"]["memory"] < 1.2 * 187_500_000
+    assert shard["options"]["scheduling_strategy"] == "SPREAD"

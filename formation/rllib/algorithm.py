@@ -49,6 +49,7 @@ from ray.rllib.utils.metrics import (
 from formation.config import ConfigError, RunFailed
 from formation.evaluate import play_greedy
 from formation.recipe.config import STOCK_TRAIN, RunConfig, TrainSettings
+from formation.recipe.replay import FrameReplay
 from formation.recipe.rollout import STARTS
 from formation.recipe.stopwatch import Stopwatch, add_seconds
 from formation.recipe.team import answers_leader, module_of_agent, network_specs, replay_frame_shape, spaces_of
@@ -389,6 +390,16 @@ def resource_bundles(run: RunConfig) -> list[dict[str, float]]:
     return [{"CPU": float(res.cpus_per_rollout_actor)}] * res.num_rollout_actors + [learner]
 
 
+def replay_shard(run: RunConfig) -> dict:
+    """One replay shard's arguments (capacity, frame shape, agents, frame stack) and Ray options: it asks for
+    the memory its arrays take, so that Ray places it on a node that can hold it, and the shards spread over
+    the cluster's nodes rather than all landing on the head."""
+    args = (max(1, run.train.replay_capacity // run.resources.num_replay_shards), replay_frame_shape(run),
+            1 + run.game.n_followers, run.game.frame_stack)
+    memory = FrameReplay(*args, prioritized=run.train.prioritized).nbytes  # numpy's zeros: nothing touched yet
+    return {"args": args, "options": {"memory": memory, "scheduling_strategy": "SPREAD"}}
+
+
 class GreedyEvaluationMixin:
     """What both paths share: counters, greedy evaluation, and their place in checkpoints."""
 
@@ -486,10 +497,9 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
     def setup(self, config: FormationDQNConfig) -> None:
         super().setup(config)
         run = self.run = config.run
-        frame_shape = replay_frame_shape(run)  # the cells of a screen, where the networks read screens per cell
-        self.replays = [ReplayActor.remote(max(1, run.train.replay_capacity // run.resources.num_replay_shards),
-                                           frame_shape, 1 + run.game.n_followers, run.game.frame_stack,
-                                           seed=run.train.seed + i, prioritized=run.train.prioritized)
+        shard = replay_shard(run)
+        self.replays = [ReplayActor.options(**shard["options"]).remote(*shard["args"], seed=run.train.seed + i,
+                                                                       prioritized=run.train.prioritized)
                         for i in range(run.resources.num_replay_shards)]
         # driver_bytes: pickled size of all that rollout actors and the learner returned to the driver
         # updates_skipped: what the replay ratio owed while a restarted replay refilled (never run)
