@@ -32,6 +32,7 @@ def test_the_config_built_from_a_run_is_that_run():
     assert config.num_steps_sampled_before_learning_starts == t.learning_starts
     assert config.epsilon == [(0, t.epsilon_start), (t.epsilon_env_steps, t.epsilon_end)]
     assert (config.num_env_runners, config.num_envs_per_env_runner) == (res.num_rollout_actors, res.games_per_actor)
+    assert config.merge_env_runner_states is False  # no per-iteration barrier on the rollout actors' states
 
 
 def test_rllib_setters_set_the_run_config_that_rollout_actors_and_the_learner_read():

@@ -350,6 +350,9 @@ def build_formation_config(run: RunConfig) -> FormationDQNConfig:
         .training(grad_clip_by="global_norm")
         .reporting(min_sample_timesteps_per_iteration=0, min_time_s_per_iteration=1.0)
         .fault_tolerance(restart_failed_env_runners=True, delay_between_env_runner_restarts_s=1.0)
+        # the rollout actors have no connector states to merge: RLlib would otherwise ask every actor for its
+        # state after every iteration, and wait for the slowest (it still sends them the env steps so far)
+        .env_runners(merge_env_runner_states=False)
     )
     config.formation_run = run.to_dict()
     return config
