@@ -220,7 +220,8 @@ class ResourceSettings:
     games_per_actor: int = 32  # games each rollout actor plays at once
     cpus_per_rollout_actor: float = 1.0  # CPUs Ray reserves for each rollout actor
     num_gpus_per_learner: float = 0.0  # GPUs for the learner (0: it runs on a CPU)
-    num_replay_shards: int = 1  # replay actors the steps are spread over
+    # replay actors the steps are spread over; each asks Ray for the memory it takes, and they spread over the nodes
+    num_replay_shards: int = 1
     # on a Ray cluster that the run joins (`ray job submit`): how long to wait for the asked
     # resources to join (worker nodes still starting) before failing; a local Ray never waits
     wait_for_resources_s: float = 120.0
