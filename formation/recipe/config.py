@@ -216,6 +216,9 @@ class TeacherSettings:
 
 @dataclass(frozen=True)
 class ResourceSettings:
+    """Where the run's work goes: its rollout actors, its learner (on a CPU or a GPU) and its replay shards. Any of
+    them may change when a run is resumed (``--resume --set resources.KEY=VALUE``)."""
+
     num_rollout_actors: int = 1  # rollout actors (Ray actors that play games); 0 on the stock path: the driver samples
     games_per_actor: int = 32  # games each rollout actor plays at once
     cpus_per_rollout_actor: float = 1.0  # CPUs Ray reserves for each rollout actor
@@ -237,6 +240,9 @@ class ResourceSettings:
 
 @dataclass(frozen=True)
 class EvalSettings:
+    """The greedy evaluations during training, on held-out scenarios (``result["evaluation"]``, ``metrics.jsonl``),
+    and the final one (``result.json``, ``greedy.gif``)."""
+
     every_env_steps: int = 25_000  # env steps between greedy evaluations during training
     episodes: int = 200  # games of each greedy evaluation
     seed: int = 1_000_000  # evaluation scenarios come from seeds training never uses
@@ -309,6 +315,8 @@ EVALUATION_SEEDS = (EvalSettings.seed, 2_000_000, 3_000_000)
 
 @dataclass(frozen=True)
 class CheckpointSettings:
+    """How often the run folder's ``checkpoint/`` is written (also at the end, and on Ctrl-C or SIGTERM)."""
+
     every_iterations: int = 10  # training iterations between checkpoints
 
     def __post_init__(self) -> None:
