@@ -233,6 +233,7 @@ def main() -> None:
             print(returns_row(stem, reports[stem]))
     print()
     reward_only_tables()
+    reproduced_table()
 
 
 if __name__ == "__main__":
