@@ -127,23 +127,27 @@ class GameConfig:
         return tuple(r for r in range(lo, hi) if r not in taken)
 
     def default_starts(self) -> tuple[tuple[int, int], tuple[tuple[int, int], ...]]:
+        """The leader's and the followers' start cells for 1-4 followers (docs/GAME.md, 'Teams of 1-4 followers'):
+        every follower 2 to 2.83 cells from the leader and at least 2 from every other, inside (d_min, d_max)
+        with the defaults."""
         H, W = self.height, self.width
         c0 = W // 2 - W // 5
         k = self.n_followers
-        if self.formation == "horizontal":
+        if self.formation == "horizontal":  # beside the leader on the bottom row, then two rows ahead
             leader = (H - 1, c0)
-            if k == 1:
-                return leader, ((H - 1, c0 - 2),)
-            if k == 2:
-                return leader, ((H - 1, c0 - 2), (H - 1, c0 + 2))
-        else:
+            followers = {1: ((H - 1, c0 - 2),),
+                         2: ((H - 1, c0 - 2), (H - 1, c0 + 2)),
+                         3: ((H - 1, c0 - 2), (H - 1, c0 + 2), (H - 3, c0)),
+                         4: ((H - 1, c0 - 2), (H - 1, c0 + 2), (H - 3, c0 - 2), (H - 3, c0 + 2))}
+        else:  # behind the leader, two rows back, then beside it
             leader = (H - 3, c0)
-            if k == 1:
-                return leader, ((H - 1, c0),)
-            if k == 2:
-                return leader, ((H - 1, c0 - 1), (H - 1, c0 + 1))
-        _fail("follower_starts", f"no default start for n_followers={k}; give follower_starts")
-        raise AssertionError  # unreachable
+            followers = {1: ((H - 1, c0),),
+                         2: ((H - 1, c0 - 1), (H - 1, c0 + 1)),
+                         3: ((H - 1, c0 - 2), (H - 1, c0), (H - 1, c0 + 2)),
+                         4: ((H - 1, c0 - 1), (H - 1, c0 + 1), (H - 3, c0 - 2), (H - 3, c0 + 2))}
+        if k not in followers:
+            _fail("follower_starts", f"no default start for n_followers={k} (allowed: 1-4); give follower_starts")
+        return leader, followers[k]
 
     @property
     def starts(self) -> tuple[tuple[int, int], tuple[tuple[int, int], ...]]:

@@ -19,6 +19,8 @@ NAMING = "ignore:We recommend agents to be named"
 # --------------------------------------------------------------------------- PettingZoo's own tests
 ENV_ARGS = [dict(setting=1), dict(setting=2), dict(setting=3), dict(setting=4),
             dict(setting=1, n_followers=2), dict(setting=4, n_followers=2),
+            dict(setting=1, n_followers=3), dict(setting=2, n_followers=3),
+            dict(setting=3, n_followers=4), dict(setting=4, n_followers=4),
             dict(setting=2, obs_type="grid", frame_stack=2)]
 
 
@@ -41,7 +43,8 @@ def test_parallel_seed_test(args):
 
 @pytest.mark.filterwarnings(NAMING)
 @pytest.mark.filterwarnings("error")
-@pytest.mark.parametrize("args", [dict(setting=1), dict(setting=4), dict(setting=2, n_followers=2)],
+@pytest.mark.parametrize("args", [dict(setting=1), dict(setting=4), dict(setting=2, n_followers=2),
+                                  dict(setting=1, n_followers=4)],
                          ids=lambda a: "-".join(f"{k}={v}" for k, v in a.items()))
 def test_aec_api_test(args):
     api_test(fenv.env(**args), num_cycles=40)
@@ -54,7 +57,8 @@ def test_aec_seed_test(args):
 
 
 # --------------------------------------------------------------------------- state() and state_space
-STATE_ARGS = [dict(setting=1), dict(setting=4, n_followers=2), dict(setting=2, obs_type="grid", frame_stack=2),
+STATE_ARGS = [dict(setting=1), dict(setting=4, n_followers=2), dict(setting=3, n_followers=3),
+              dict(setting=2, obs_type="grid", frame_stack=2),
               dict(setting=1, max_steps=2, n_obstacles=0)]
 
 

@@ -643,3 +643,37 @@ def test_scenario_round_trip_through_batched_game():
         np.testing.assert_array_equal(game.obstacle_dirs, copy.obstacle_dirs)
         np.testing.assert_array_equal(game.rewards, copy.rewards)
         np.testing.assert_array_equal(game.terminated, copy.terminated)
+
+
+@pytest.mark.parametrize("setting", [1, 2, 3, 4])
+@pytest.mark.parametrize("k", [1, 2, 3, 4])
+def test_teams_of_one_to_four_followers_start_in_formation_where_docs_game_md_puts_them(setting, k):
+    """docs/GAME.md, 'Teams of 1-4 followers': c0 = W // 2 - W // 5; the horizontal team beside the leader on the
+    bottom row, then two rows ahead; the vertical one two rows behind it, then beside it."""
+    config = GameConfig.from_setting(setting, n_followers=k)
+    H, c0 = config.height, config.width // 2 - config.width // 5
+    leader, followers = config.starts
+    if config.formation == "horizontal":
+        expected = (H - 1, c0), {1: [(H - 1, c0 - 2)], 2: [(H - 1, c0 - 2), (H - 1, c0 + 2)],
+                                 3: [(H - 1, c0 - 2), (H - 1, c0 + 2), (H - 3, c0)],
+                                 4: [(H - 1, c0 - 2), (H - 1, c0 + 2), (H - 3, c0 - 2), (H - 3, c0 + 2)]}[k]
+    else:
+        expected = (H - 3, c0), {1: [(H - 1, c0)], 2: [(H - 1, c0 - 1), (H - 1, c0 + 1)],
+                                 3: [(H - 1, c0 - 2), (H - 1, c0), (H - 1, c0 + 2)],
+                                 4: [(H - 1, c0 - 1), (H - 1, c0 + 1), (H - 3, c0 - 2), (H - 3, c0 + 2)]}[k]
+    assert (leader, list(followers)) == expected
+    game = BatchedGame(config, batch_size=8, seed=setting)
+    game.reset()
+    positions = game.positions  # (games, agents, 2)
+    gaps = np.sqrt(((positions[:, :, None] - positions[:, None]) ** 2).sum(-1))
+    assert (config.d_min < gaps[:, 0, 1:]).all() and (gaps[:, 0, 1:] < config.d_max).all()  # each to the leader
+    followers_gaps = gaps[:, 1:, 1:][:, ~np.eye(k, dtype=bool)]
+    assert (followers_gaps > config.d_min).all()  # and to each other
+    game.step(np.full((8, 1 + k), 3))  # all stay: the formation holds
+    assert game.formation_kept.all()
+
+
+def test_a_team_without_default_starts_is_refused_in_one_line():
+    with pytest.raises(ConfigError, match=r"^follower_starts: no default start for n_followers=5 \(allowed: 1-4\); "
+                                          r"give follower_starts$"):
+        GameConfig.from_setting(1, n_followers=5)

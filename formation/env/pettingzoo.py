@@ -7,7 +7,7 @@
 | parallel API | yes (``parallel_env``; ``env()`` is PettingZoo's AEC conversion of it) |
 | manual control | no |
 | agents | ``agents = ["leader", "follower"]``; ``["leader", "follower_1", .., "follower_k"]`` with ``n_followers=k`` |
-| number of agents | ``1 + n_followers`` (2 by default) |
+| number of agents | ``1 + n_followers`` (2 by default; default starts for 1-4 followers, docs/GAME.md) |
 | action shape | ``Discrete(4)``: 0 F (forward), 1 FL (left forward), 2 FR (right forward), 3 S (stay) |
 | observation shape | ``(84, 84, 3*frame_stack)``: the last ``frame_stack`` RGB screens, oldest first |
 | observation values | ``uint8`` in ``[0, 255]``; with ``obs_type="grid"``: ``(H, W, 4*frame_stack)`` in ``[0, 1]`` |
@@ -33,7 +33,8 @@ distance to the leader; the leader's is the distance to its farthest follower), 
 ``success``, ``steps``.
 
 Version history:
-* v1: ``state()`` and ``state_space`` (the present screen or grid); the same game (rules v1).
+* v1: ``state()`` and ``state_space`` (the present screen or grid); the same game (rules v1); default starts
+  for teams of 3 and 4 followers.
 * v0: initial release, rules v1.
 """
 
