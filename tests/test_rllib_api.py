@@ -299,3 +299,27 @@ def test_rllibs_from_checkpoint_restores_a_run_that_evaluates_as_the_run_did(clu
         assert algo.evaluate_greedy()["success"] == result["greedy"]["success"]
     finally:
         algo.stop()
+
+
+def test_a_rollout_actor_waits_for_a_replay_shard_that_falls_behind(cluster, rollout_actor):
+    """Bounded in-flight pushes: at most ``ADDS_IN_FLIGHT`` unacknowledged, then the actor waits for the oldest
+    (counted as its ``push_wait`` stage) rather than piling records up in the object store."""
+    import time
+
+    from formation.rllib.rollout_actor import ADDS_IN_FLIGHT
+
+    @ray.remote(num_cpus=0)
+    class SlowReplay:
+        def add(self, chunk) -> int:
+            time.sleep(0.5)
+            return len(chunk)
+
+    actor = rollout_actor({"train.steps_per_sample": 1})
+    actor.set_replay(SlowReplay.remote())
+    results = [actor.sample() for _ in range(ADDS_IN_FLIGHT)]
+    assert all("push_wait" not in r["seconds"] for r in results) and len(actor._adds) == ADDS_IN_FLIGHT
+    oldest = actor._adds[0]
+    result = actor.sample()
+    assert "push_wait" in result["seconds"] and len(actor._adds) == ADDS_IN_FLIGHT
+    ready, _ = ray.wait([oldest], timeout=0)
+    assert ready == [oldest]  # it returned only once the replay had taken its oldest push

@@ -23,6 +23,8 @@ from formation.recipe.collect import Collector
 from formation.recipe.stopwatch import Stopwatch, add_seconds
 from formation.recipe.team import module_of_agent, spaces_of
 
+ADDS_IN_FLIGHT = 2  # pushes a rollout actor may have unacknowledged before it waits for its replay shard
+
 
 class RolloutActor(EnvRunner, Checkpointable):
     def __init__(self, *, config, **kwargs):
@@ -32,6 +34,7 @@ class RolloutActor(EnvRunner, Checkpointable):
         self._modules_of_agent = module_of_agent(self.run)
         self._weights_seq_no = 0
         self._replay = None
+        self._adds: list = []  # pushes to the replay not yet acknowledged
         self.num_env_steps_sampled_lifetime = 0
         self.clock = Stopwatch()  # seconds per stage, returned with every sample()
         self.make_env()
@@ -56,7 +59,7 @@ class RolloutActor(EnvRunner, Checkpointable):
         assert self.module is not None and self.rollout is not None
 
     def set_replay(self, handle) -> bool:
-        self._replay = handle
+        self._replay, self._adds = handle, []
         return True
 
     # -- sampling
@@ -65,7 +68,10 @@ class RolloutActor(EnvRunner, Checkpointable):
         records, episodes = self.collector.collect(networks, self.run.train.steps_per_sample,
                                                    self.num_env_steps_sampled_lifetime)
         with self.clock("push"):
-            self._replay.add.remote(records)
+            self._adds.append(self._replay.add.remote(records))
+        if len(self._adds) > ADDS_IN_FLIGHT:  # a replay that falls behind slows its actors, not the object store's
+            with self.clock("push_wait"):
+                _, self._adds = ray.wait(self._adds, num_returns=len(self._adds) - ADDS_IN_FLIGHT)
         steps = self.rollout.batch_size * self.run.train.steps_per_sample
         self.num_env_steps_sampled_lifetime += steps
         return {"env_steps": steps, "episodes": episodes, "worker": getattr(self, "worker_index", 0),
