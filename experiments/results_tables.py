@@ -177,7 +177,7 @@ def reproduced_table() -> None:
     if not any(folder.glob("*.json")):
         return
     print("\n| config | seed | env steps | training | validation success (95% CI) | steps: ours / planner | "
-          "the shipped team's run |\n" + "| --- " * 7 + "|")
+          "the config's earlier run (seed 0) |\n" + "| --- " * 7 + "|")
     for path in sorted(folder.glob("setting*_seed*.json")):
         r = json.loads(path.read_text())
         trained = reward_only(r, str(path))
