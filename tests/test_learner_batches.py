@@ -62,7 +62,7 @@ def margin_loss(module: str, q, batch: dict, **config):
     fwd = {"qf_preds": q, "qf_next_preds": torch.zeros(n, actions), "qf_target_next_preds": torch.zeros(n, actions)}
     learner = FormationLearner.__new__(FormationLearner)
     learner._priority, learner._stats = {}, {}
-    config = SimpleNamespace(**{"safety_weight": 1.0, **config})
+    config = SimpleNamespace(loss_weights={"safety_weight": 1.0, **config})
     loss = learner.compute_loss_for_module(module_id=module, config=config, batch=batch, fwd_out=fwd)
     return loss, learner._priority[module]
 
@@ -187,7 +187,7 @@ def test_a_safety_head_adds_its_loss_but_not_its_wrong_verdicts_to_the_priority(
                SAFETY_LOGITS: logits}
         learner = FormationLearner.__new__(FormationLearner)
         learner._priority, learner._stats = {}, {}
-        config = SimpleNamespace(margin=0.0, margin_gap=5.0, safety_weight=1.0)
+        config = SimpleNamespace(loss_weights={"margin": 0.0, "margin_gap": 5.0, "safety_weight": 1.0})
         loss = learner.compute_loss_for_module(module_id="leader", config=config, batch=batch, fwd_out=fwd)
         return loss, learner._priority["leader"], learner._stats["leader"]
 

@@ -36,6 +36,15 @@ def forward(net: DuelingQNetwork, target: DuelingQNetwork, obs: torch.Tensor, ne
     return out
 
 
+def loss_weights(run: RunConfig) -> dict[str, float]:
+    """``dqn_loss``'s weights of the teacher's terms (``margin``, ``margin_gap``, ``safety_weight``): the teacher
+    section's, or 0 without a teacher (there are no labels to weigh)."""
+    t = run.teacher
+    if t is None:
+        return {"margin": 0.0, "margin_gap": 0.0, "safety_weight": 0.0}
+    return {"margin": t.margin, "margin_gap": t.margin_gap, "safety_weight": t.safety_weight}
+
+
 def sample_priorities(per_module: dict[str, np.ndarray], n: int) -> np.ndarray:
     """A replay sample's new priorities from each module's (``dqn_loss``; a module of k agents has k rows per
     step): a step's largest, so a step any agent gets wrong comes back."""
@@ -52,9 +61,7 @@ class Learner:
         self.optimizers = {m: torch.optim.Adam(net.parameters(), lr=run.train.lr) for m, net in networks.items()}
         self.agent_modules = module_of_agent(run)
         self.answering = frozenset(m for m in networks if answers_leader(run, m))
-        teacher = run.teacher
-        self.margin, self.margin_gap = (teacher.margin, teacher.margin_gap) if teacher is not None else (0.0, 0.0)
-        self.safety_weight = teacher.safety_weight if teacher is not None else 0.0
+        self.loss_weights = loss_weights(run)
         self.updates = 0
 
     def update(self, sample: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, dict[str, float]]]:
@@ -67,8 +74,7 @@ class Learner:
             batch = {key: torch.from_numpy(np.asarray(value)) for key, value in columns.items()}
             out = forward(self.networks[module], self.targets[module], batch[OBS], batch[NEXT_OBS])
             loss, priority, stats[module] = dqn_loss(batch, out["q"], out["q_next"], out["q_target_next"],
-                                                     self.margin, self.margin_gap, out.get("safety_logits"),
-                                                     self.safety_weight)
+                                                     safety_logits=out.get("safety_logits"), **self.loss_weights)
             optimizer = self.optimizers[module]
             optimizer.zero_grad(set_to_none=True)
             loss.backward()

@@ -49,6 +49,7 @@ from ray.rllib.utils.metrics import (
 from formation.config import ConfigError, RunFailed
 from formation.evaluate import play_greedy
 from formation.recipe.config import STOCK_TRAIN, RunConfig, TrainSettings
+from formation.recipe.learn import loss_weights
 from formation.recipe.replay import FrameReplay
 from formation.recipe.rollout import STARTS
 from formation.recipe.stopwatch import Stopwatch, add_seconds
@@ -241,16 +242,8 @@ class FormationDQNConfig(RunConfigFields, DQNConfig):
 
     # fields the learner reads through its config
     @property
-    def margin(self) -> float:
-        return self.run.teacher.margin if self.run.teacher is not None else 0.0
-
-    @property
-    def margin_gap(self) -> float:
-        return self.run.teacher.margin_gap if self.run.teacher is not None else 0.0
-
-    @property
-    def safety_weight(self) -> float:
-        return self.run.teacher.safety_weight if self.run.teacher is not None else 0.0
+    def loss_weights(self) -> dict[str, float]:
+        return loss_weights(self.run)
 
     @property
     def prioritized(self) -> bool:
@@ -371,26 +364,27 @@ def learner_values(results) -> list:
     return values
 
 
-def missing_resources(run: RunConfig, have: dict[str, float]) -> str | None:
-    """What the run asks for beyond ``have`` (Ray's cluster resources), as a one-line error; None if it fits."""
-    res = run.resources
-    gpus = res.num_gpus_per_learner
-    cpus = res.num_rollout_actors * res.cpus_per_rollout_actor + (1 if gpus == 0 else 0)
-    if gpus > have.get("GPU", 0):
-        return (f"resources.num_gpus_per_learner: {gpus:g} GPU asked, the Ray cluster has {have.get('GPU', 0):g}; "
-                "allowed here: 0 (the learner then runs on CPU)")
-    if cpus > have.get("CPU", 0):
-        return (f"resources.num_rollout_actors: {res.num_rollout_actors} actors x {res.cpus_per_rollout_actor:g} CPU "
-                f"+ the learner need {cpus:g} CPUs, the Ray cluster has {have.get('CPU', 0):g}; "
-                "lower num_rollout_actors or cpus_per_rollout_actor")
-    return None
-
-
 def resource_bundles(run: RunConfig) -> list[dict[str, float]]:
-    """What the run's actors ask Ray for: one bundle per rollout actor, and the learner's."""
+    """What the run's actors ask Ray for: one bundle per rollout actor, and the learner's (a GPU learner asks
+    for no CPU)."""
     res = run.resources
     learner = {"CPU": 1.0} if res.num_gpus_per_learner == 0 else {"GPU": float(res.num_gpus_per_learner)}
     return [{"CPU": float(res.cpus_per_rollout_actor)}] * res.num_rollout_actors + [learner]
+
+
+def missing_resources(run: RunConfig, have: dict[str, float]) -> str | None:
+    """What the run asks for (``resource_bundles``) beyond ``have`` (Ray's cluster resources), as a one-line
+    error; None if it fits."""
+    res = run.resources
+    asked = {kind: sum(b.get(kind, 0.0) for b in resource_bundles(run)) for kind in ("CPU", "GPU")}
+    if asked["GPU"] > have.get("GPU", 0):
+        return (f"resources.num_gpus_per_learner: {asked['GPU']:g} GPU asked, the Ray cluster has "
+                f"{have.get('GPU', 0):g}; allowed here: 0 (the learner then runs on CPU)")
+    if asked["CPU"] > have.get("CPU", 0):
+        return (f"resources.num_rollout_actors: {res.num_rollout_actors} actors x {res.cpus_per_rollout_actor:g} CPU "
+                f"+ the learner need {asked['CPU']:g} CPUs, the Ray cluster has {have.get('CPU', 0):g}; "
+                "lower num_rollout_actors or cpus_per_rollout_actor")
+    return None
 
 
 def replay_shard(run: RunConfig) -> dict:

@@ -121,8 +121,8 @@ class FormationLearner(DQNTorchLearner):
         """``formation.recipe.loss.dqn_loss`` on the module's batch; its priorities and statistics are kept for
         ``pull_and_update``, which logs them in one thread (RLlib's metrics logger is not thread-safe)."""
         loss, priority, self._stats[module_id] = dqn_loss(
-            batch, fwd_out[QF_PREDS], fwd_out[QF_NEXT_PREDS], fwd_out[QF_TARGET_NEXT_PREDS], config.margin,
-            config.margin_gap, fwd_out.get(SAFETY_LOGITS), config.safety_weight)
+            batch, fwd_out[QF_PREDS], fwd_out[QF_NEXT_PREDS], fwd_out[QF_TARGET_NEXT_PREDS],
+            safety_logits=fwd_out.get(SAFETY_LOGITS), **config.loss_weights)
         self._priority[module_id] = priority.cpu().numpy()
         return loss
 
