@@ -269,3 +269,16 @@ def test_the_teacher_tells_a_rollout_what_searches_of_each_state_alone_tell(sett
     assert [teacher_outputs(reference, config, states, firsts) for states, firsts in asked] == told
     firsts = sum(f for _, fs in asked for f in fs)
     assert 8 < firsts < 100 and any(j is None for step in told for j in step[0])
+
+
+def test_a_full_cache_keeps_every_state_of_the_batch_it_searches():
+    """The teacher keeps the searches of its last 256 states; a batch that brings new states must not drop the
+    states of that same batch found before (a rollout asked for one and met a KeyError)."""
+    teacher = Teacher(SMALL, slack=6)
+    game = BatchedGame(SMALL, batch_size=300, seed=5)
+    game.reset()
+    states = list(dict.fromkeys(game.scenario(i) for i in range(300)))
+    teacher._find_starts(states[:256])
+    batch = [states[0], *states[256:]]  # the oldest state kept, with new ones
+    teacher._find_starts(batch)
+    assert all(s in teacher._found for s in batch)

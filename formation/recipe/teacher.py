@@ -101,8 +101,6 @@ class Teacher:
         """The joint actions that start a shortest path within the slack (None: no path), from one
         search; the last few are kept, since a state's label and its answers need the same."""
         self._find_starts(self._unsearched if scenario in self._unsearched else [scenario])
-        if scenario not in self._found:  # kept once, then dropped to make room for the others of its batch
-            self._find_starts([scenario])
         return self._found[scenario]
 
     def _find_starts(self, scenarios: list[Scenario]) -> None:
@@ -112,9 +110,11 @@ class Teacher:
             return
         found = shortest_first_moves_many(missing, config=self.config, max_steps=[self._limit(s) for s in missing],
                                           ahead=self._ahead)
+        asked = set(scenarios)  # never dropped for each other: the caller reads them next
         for scenario, starts in zip(missing, found):
-            if len(self._found) >= 256:
-                self._found.pop(next(iter(self._found)))
+            oldest = next((s for s in self._found if s not in asked), None) if len(self._found) >= 256 else None
+            if oldest is not None:
+                self._found.pop(oldest)
             self._found[scenario] = set(starts[1]) if starts is not None else None
 
     def _survives(self, scenario: Scenario, joint: tuple[int, ...]) -> bool:
