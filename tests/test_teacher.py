@@ -275,10 +275,11 @@ def test_a_full_cache_keeps_every_state_of_the_batch_it_searches():
     """The teacher keeps the searches of its last 256 states; a batch that brings new states must not drop the
     states of that same batch found before (a rollout asked for one and met a KeyError)."""
     teacher = Teacher(SMALL, slack=6)
-    game = BatchedGame(SMALL, batch_size=300, seed=5)
+    game = BatchedGame(SMALL, batch_size=3, seed=5)
     game.reset()
-    states = list(dict.fromkeys(game.scenario(i) for i in range(300)))
-    teacher._find_starts(states[:256])
-    batch = [states[0], *states[256:]]  # the oldest state kept, with new ones
-    teacher._find_starts(batch)
-    assert all(s in teacher._found for s in batch)
+    kept, *new = [game.scenario(i) for i in range(3)]
+    teacher._find_starts([kept])  # the oldest entry of a full cache ...
+    teacher._found.update({("older", i): None for i in range(255)})
+    assert len(teacher._found) == 256 and next(iter(teacher._found)) == kept
+    teacher._find_starts([kept, *new])  # ... asked for again beside new states
+    assert all(s in teacher._found for s in [kept, *new]) and len(teacher._found) == 256
