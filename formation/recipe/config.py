@@ -379,7 +379,7 @@ class RunConfig:
     def from_dict(cls, values: dict[str, Any]) -> RunConfig:
         if not isinstance(values, dict):
             raise ConfigError(f"config: a mapping of sections is needed, got {type(values).__name__}")
-        allowed = ("game", *SECTIONS, "teacher")
+        allowed = ("game", *SECTIONS, *OPTIONAL_SECTIONS)
         for key in values:
             if key not in allowed:
                 raise ConfigError(f"{key}: unknown section; allowed: {', '.join(allowed)}")
