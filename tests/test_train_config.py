@@ -73,8 +73,8 @@ def test_numbers_in_exponent_notation_are_numbers_in_a_file_and_in_overrides(tmp
     ({"teacher": {"margin_gap": -1}}, "teacher.margin_gap"),
     ({"teacher": {"demonstrations": 2}}, "teacher.demonstrations"),
     ({"teacher": {"dagger": True}}, "teacher.dagger"),  # the teacher always labels: no such key
-    ({"train": {"dagger": True}}, "train.dagger"),  # the teacher's keys are not train's
-    ({"train": {"margin": 5.0}}, "train.margin"),
+    ({"train": {"dagger": True}}, "train.dagger: moved to the teacher section in 0.4 (a teacher section turns"),
+    ({"train": {"margin": 5.0}}, "train.margin: moved to the teacher section in 0.4 (it is teacher.margin)"),
     ({"teacher": {}, "game": {"setting": None, "height": 9, "width": 12, "n_followers": 3, "leader_start": [6, 4],
                               "follower_starts": [[8, 2], [8, 6], [8, 4]]}}, "teacher"),  # 3 followers: no planner
     ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),

@@ -481,6 +481,10 @@ def section_of(name: str, values: dict[str, Any] | None) -> Any:
     values = drop_removed(name, values)
     known = {f.name for f in dataclasses.fields(kind)}
     for key in values:
+        if name == "train" and key in OLD_TEACHER_KEYS:  # a config of before 0.4
+            where = "a teacher section turns it on" if key == "dagger" else f"it is teacher.{key}"
+            raise ConfigError(f"train.{key}: moved to the teacher section in 0.4 ({where}); allowed: "
+                              f"{', '.join(sorted(known))}")
         if key not in known:
             raise ConfigError(f"{name}.{key}: unknown key; allowed: {', '.join(sorted(known))}")
     return kind(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
