@@ -131,11 +131,11 @@ def smoke_run(tmp_path_factory, worker_id):
 
 @pytest.fixture(scope="session")
 def cluster():
-    """A small local Ray (2 CPUs, no dashboard) for every test of this session (of this xdist worker)
-    that trains in-process; shut down at the end. Starting one costs seconds: start it once."""
+    """A small local Ray (3 logical CPUs, no dashboard: room for two learners) for every test of this session
+    (of this xdist worker) that trains in-process; shut down at the end. Starting one costs seconds: start it once."""
     ray = pytest.importorskip("ray")
     if not ray.is_initialized():
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+        ray.init(num_cpus=3, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
 

@@ -58,8 +58,14 @@ def test_rllib_setters_set_the_run_config_that_rollout_actors_and_the_learner_re
     assert epsilon_at(50, actor.run.train) == pytest.approx(0.255)
     # the learner pulls batches of this size, n-step and gamma (the RLlib fields themselves)
     assert (config.train_batch_size, config.n_step, config.gamma) == (16, 7, 0.5)
-    # train_batch_size_per_learner is the same number: the formation path has one learner
+    # train_batch_size_per_learner is RLlib's: train.batch_size is the total over the learners
     assert config.training(train_batch_size_per_learner=24).run.train.batch_size == 24
+    values = config.formation_run
+    values["resources"].update(num_replay_shards=2, num_rollout_actors=2)
+    config.formation_run = values
+    config.learners(num_learners=2).training(train_batch_size_per_learner=24)
+    assert (config.run.resources.num_learners, config.run.train.batch_size) == (2, 48)
+    assert config.train_batch_size_per_learner == 24
 
 
 @pytest.mark.parametrize("kwargs, key", [({"gamma": 5}, "train.gamma"), ({"lr": -1.0}, "train.lr"),
@@ -77,7 +83,7 @@ def test_invalid_values_are_the_run_configs_one_line_error(kwargs, key):
     ("training", {"num_atoms": 51}), ("training", {"noisy": True}), ("training", {"td_error_loss_fn": "mse"}),
     ("training", {"training_intensity": 4.0}), ("training", {"replay_buffer_config": {"capacity": 10}}),
     ("env_runners", {"rollout_fragment_length": 50}), ("evaluation", {"evaluation_interval": 1}),
-    ("learners", {"num_learners": 2}), ("environment", {"env": "CartPole-v1"}),
+    ("learners", {"num_cpus_per_learner": 2}), ("environment", {"env": "CartPole-v1"}),
     ("framework", {"torch_compile_learner": True}),
     ("training", {"optimizer": {"type": "sgd"}}), ("env_runners", {"env_to_module_connector": lambda env: []}),
     ("env_runners", {"module_to_env_connector": lambda env: []}), ("training", {"learner_connector": lambda s: []})])

@@ -95,6 +95,9 @@ def test_missing_resources_name_the_field_and_what_the_cluster_has():
     message = missing_resources(run, {"CPU": 4.0})
     assert message.startswith("resources.num_rollout_actors: 6 actors x 1 CPU + the learner need 7 CPUs, "
                               "the Ray cluster has 4")
+    two = RunConfig.load("configs/smoke.yaml", {"resources.num_learners": 2, "resources.num_replay_shards": 2})
+    assert missing_resources(two, {"CPU": 2.5}).startswith("resources.num_rollout_actors: 2 actors x 0.5 CPU "
+                                                           "+ 2 learners need 3 CPUs, the Ray cluster has 2.5")
     gpu = RunConfig.load("configs/smoke.yaml", {"resources.num_gpus_per_learner": 1})
     assert missing_resources(gpu, {"CPU": 8.0}).startswith("resources.num_gpus_per_learner: 1 GPU asked, "
                                                            "the Ray cluster has 0")

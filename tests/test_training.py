@@ -255,3 +255,52 @@ def test_a_run_from_pixels_keeps_only_the_cells_in_its_replay_and_learns_from_th
         assert algo.evaluate_greedy(episodes=4)["episodes"] == 4  # acting on whole screens
     finally:
         algo.stop()
+
+
+def test_data_parallel_learners_each_pull_from_their_own_shards_and_hold_equal_weights(cluster):
+    """resources.num_learners: 2 runs RLlib's LearnerGroup with torch DDP (gloo on a CPU): each learner pulls half of
+    train.batch_size from its own replay shard, the same number of updates per call, and after every update both
+    hold the same weights (their target networks too), which differ from the weights they started from."""
+    import torch
+
+    from formation.rllib.algorithm import build_algorithm_config
+
+    run = RunConfig.load(SMOKE, {"resources.cpus_per_rollout_actor": 0.25, "resources.num_learners": 2,
+                                 "resources.num_replay_shards": 2,
+                                 "train.learning_starts": 200, "train.target_update_every": 5})
+    config = build_algorithm_config(run)
+    assert (config.num_learners, config.train_batch_size_per_learner) == (2, run.train.batch_size // 2)
+    algo = config.build_algo()
+    try:
+        before = {m: [p.detach().clone() for p in module.parameters()] for m, module in algo.local_modules().items()}
+        train_until(algo, 1000)
+        assert algo.counters["updates"] >= 2 * run.train.target_update_every
+        seen = [r.get() for r in algo.learner_group.foreach_learner(
+            lambda learner: (learner._shards, learner.num_updates, learner.config.train_batch_size_per_learner,
+                             {m: learner.module[m].unwrapped().state_dict() for m in ("leader", "follower")}))]
+        assert [s[0] for s in seen] == [[0], [1]]  # each its own shard
+        assert [s[1] for s in seen] == [algo.counters["updates"]] * 2 and {s[2] for s in seen} == {16}
+        (_, _, _, first), (_, _, _, second) = seen
+        for m in first:
+            assert any("target" in name for name in first[m])
+            for name, tensor in first[m].items():
+                assert torch.equal(tensor, second[m][name]), (m, name)
+        after = algo.local_modules()
+        for m, params in before.items():
+            assert any(not torch.equal(p, q) for p, q in zip(params, after[m].parameters())), m
+    finally:
+        algo.stop()
+
+
+def test_learners_need_shards_of_their_own_and_a_batch_that_splits():
+    with pytest.raises(ConfigError, match=r"^resources\.num_replay_shards: 1 is not allowed with num_learners: 2 "
+                                          r"\(each learner pulls from shards of its own\); allowed: 2 or more$"):
+        RunConfig.load(SMOKE, {"resources.num_learners": 2})
+    with pytest.raises(ConfigError, match=r"^train\.batch_size: 32 does not split over resources\.num_learners: 3; "
+                                          r"allowed: a multiple of 3$"):
+        RunConfig.load(SMOKE, {"resources.num_learners": 3, "resources.num_replay_shards": 3})
+    with pytest.raises(ConfigError, match=r"^resources\.num_learners: 2 is not allowed with train\.path: stock"):
+        RunConfig.load(SMOKE, {"resources.num_learners": 2, "resources.num_replay_shards": 2, "train.path": "stock"})
+    with pytest.raises(ConfigError, match=r"^resources\.num_replay_shards: 3 is not allowed with num_rollout_actors: 2 "
+                                          r"\(each shard is filled by actors of its own\); allowed: 1 to 2$"):
+        RunConfig.load(SMOKE, {"resources.num_replay_shards": 3})

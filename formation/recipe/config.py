@@ -222,7 +222,10 @@ class ResourceSettings:
     num_rollout_actors: int = 1  # rollout actors (Ray actors that play games); 0 on the stock path: the driver samples
     games_per_actor: int = 32  # games each rollout actor plays at once
     cpus_per_rollout_actor: float = 1.0  # CPUs Ray reserves for each rollout actor
-    num_gpus_per_learner: float = 0.0  # GPUs for the learner (0: it runs on a CPU)
+    num_gpus_per_learner: float = 0.0  # GPUs for each learner (0: it runs on a CPU)
+    # data-parallel learners (RLlib's LearnerGroup: torch DDP, gloo on CPU, NCCL on GPU); each pulls
+    # train.batch_size / num_learners records per update from its own replay shards
+    num_learners: int = 1
     # replay actors the steps are spread over; each asks Ray for the memory it takes, and they spread over the nodes
     num_replay_shards: int = 1
     # on a Ray cluster that the run joins (`ray job submit`): how long to wait for the asked
@@ -234,6 +237,11 @@ class ResourceSettings:
         _integer(self, "num_rollout_actors", 0, section="resources")
         _integer(self, "games_per_actor", 1, section="resources")
         _integer(self, "num_replay_shards", 1, section="resources")
+        _integer(self, "num_learners", 1, section="resources")
+        if self.num_replay_shards < self.num_learners:
+            raise ConfigError(f"resources.num_replay_shards: {self.num_replay_shards} is not allowed with "
+                              f"num_learners: {self.num_learners} (each learner pulls from shards of its own); "
+                              f"allowed: {self.num_learners} or more")
         _number(self, "cpus_per_rollout_actor", 0.0, 1024.0, section="resources", low_open=True)
         _number(self, "num_gpus_per_learner", 0.0, 64.0, section="resources")
 
@@ -359,6 +367,18 @@ class RunConfig:
             raise ConfigError("teacher.answer_every_leader_move: true needs train.follower_answers_leader: true; "
                               "allowed: false")
         t = self.train
+        if t.batch_size % self.resources.num_learners:
+            raise ConfigError(f"train.batch_size: {t.batch_size} does not split over resources.num_learners: "
+                              f"{self.resources.num_learners}; allowed: a multiple of {self.resources.num_learners}")
+        res = self.resources
+        if t.path == "formation" and 0 < res.num_rollout_actors < res.num_replay_shards:
+            # an actor's records stack frames of its earlier ones: it fills one shard only
+            raise ConfigError(f"resources.num_replay_shards: {res.num_replay_shards} is not allowed with "
+                              f"num_rollout_actors: {res.num_rollout_actors} (each shard is filled by actors of its "
+                              f"own); allowed: 1 to {res.num_rollout_actors}")
+        if t.path == "stock" and self.resources.num_learners != 1:
+            raise ConfigError(f"resources.num_learners: {self.resources.num_learners} is not allowed with "
+                              "train.path: stock; allowed: 1")
         if t.path == "stock" and (teacher is not None or any(getattr(t, k) != v for k, v in STOCK_TRAIN.items())):
             needed = ", ".join(f"{k}: {json.dumps(v)}" for k, v in STOCK_TRAIN.items())
             raise ConfigError(f"train.path: stock runs RLlib's DQN on the paper's reward alone; set train.{needed}, "

@@ -82,6 +82,7 @@ RUN_FIELDS: dict[str, tuple[str, str]] = {
     "num_envs_per_env_runner": ("resources", "games_per_actor"),
     "num_cpus_per_env_runner": ("resources", "cpus_per_rollout_actor"),
     "num_gpus_per_learner": ("resources", "num_gpus_per_learner"),
+    "num_learners": ("resources", "num_learners"),
 }
 EPSILON_KEYS = ("epsilon_start", "epsilon_end", "epsilon_env_steps")  # RLlib's ``epsilon`` schedule
 
@@ -108,7 +109,7 @@ NOT_HONOURED: dict[str, str] = {
     "before_learn_on_batch": "the learner pulls its batches from the replay itself",
     "burn_in_len": "its networks have no memory",
     "rollout_fragment_length": "a rollout actor plays train.steps_per_sample steps of its games per sample",
-    "num_learners": "it has one learner (resources.num_gpus_per_learner places it)",
+    "num_cpus_per_learner": "a CPU learner takes one CPU; resources.num_learners adds learners",
     "env": "the game is the run config's game section",
     "env_config": "the game is the run config's game section",
     "evaluation_interval": "greedy evaluation runs every eval.every_env_steps env steps on eval.episodes games, "
@@ -218,15 +219,14 @@ class FormationDQNConfig(RunConfigFields, DQNConfig):
         self.replay_buffer_config = {**self.replay_buffer_config, "no_local_replay_buffer": True}
         self.env_runners(env_runner_cls=RolloutActor, create_local_env_runner=False,
                          max_requests_in_flight_per_env_runner=2)
-        self.learners(num_learners=1)
         self.formation_run = RunConfig().to_dict()
 
     def __setattr__(self, key, value):
         if "_formation_run" in self.__dict__ and not self.__dict__.get("in_evaluation"):
             if key in NOT_HONOURED and key in self.__dict__ and not _same(value, self.__dict__[key]):
                 raise _not_honoured(key, value, repr(self.__dict__[key]))
-            if key == "_train_batch_size_per_learner" and value is not None:  # one learner: the same number
-                key = "train_batch_size"
+            if key == "_train_batch_size_per_learner" and value is not None:  # RLlib's: the total over learners
+                key, value = "train_batch_size", value * (self.num_learners or 1)
             _check_callbacks(key, value)
         super().__setattr__(key, value)
 
@@ -293,7 +293,7 @@ class StockFormationDQNConfig(RunConfigFields, DQNConfig):
     """RLlib's DQN on the RLlib view of the game; its fields that mean what the run config's keys mean are those
     keys (its target_network_update_freq counts env steps, the run config's learner updates: not one of them)."""
 
-    run_fields = {k: v for k, v in RUN_FIELDS.items() if k != "target_network_update_freq"}
+    run_fields = {k: v for k, v in RUN_FIELDS.items() if k not in ("target_network_update_freq", "num_learners")}
 
     def __init__(self, algo_class=None):
         super().__init__(algo_class=algo_class or StockFormationDQN)
@@ -365,11 +365,11 @@ def learner_values(results) -> list:
 
 
 def resource_bundles(run: RunConfig) -> list[dict[str, float]]:
-    """What the run's actors ask Ray for: one bundle per rollout actor, and the learner's (a GPU learner asks
+    """What the run's actors ask Ray for: one bundle per rollout actor, and one per learner (a GPU learner asks
     for no CPU)."""
     res = run.resources
     learner = {"CPU": 1.0} if res.num_gpus_per_learner == 0 else {"GPU": float(res.num_gpus_per_learner)}
-    return [{"CPU": float(res.cpus_per_rollout_actor)}] * res.num_rollout_actors + [learner]
+    return [{"CPU": float(res.cpus_per_rollout_actor)}] * res.num_rollout_actors + [learner] * res.num_learners
 
 
 def missing_resources(run: RunConfig, have: dict[str, float]) -> str | None:
@@ -378,12 +378,14 @@ def missing_resources(run: RunConfig, have: dict[str, float]) -> str | None:
     res = run.resources
     asked = {kind: sum(b.get(kind, 0.0) for b in resource_bundles(run)) for kind in ("CPU", "GPU")}
     if asked["GPU"] > have.get("GPU", 0):
-        return (f"resources.num_gpus_per_learner: {asked['GPU']:g} GPU asked, the Ray cluster has "
-                f"{have.get('GPU', 0):g}; allowed here: 0 (the learner then runs on CPU)")
+        learners = "" if res.num_learners == 1 else f" by {res.num_learners} learners"
+        return (f"resources.num_gpus_per_learner: {asked['GPU']:g} GPU asked{learners}, the Ray cluster has "
+                f"{have.get('GPU', 0):g}; allowed here: 0 (the learners then run on CPU)")
     if asked["CPU"] > have.get("CPU", 0):
+        learners = "the learner" if res.num_learners == 1 else f"{res.num_learners} learners"
         return (f"resources.num_rollout_actors: {res.num_rollout_actors} actors x {res.cpus_per_rollout_actor:g} CPU "
-                f"+ the learner need {asked['CPU']:g} CPUs, the Ray cluster has {have.get('CPU', 0):g}; "
-                "lower num_rollout_actors or cpus_per_rollout_actor")
+                f"+ {learners} need {asked['CPU']:g} CPUs, the Ray cluster has {have.get('CPU', 0):g}; "
+                "lower num_rollout_actors, cpus_per_rollout_actor or num_learners")
     return None
 
 
@@ -436,9 +438,9 @@ class GreedyEvaluationMixin:
 
     def local_modules(self) -> dict:
         """CPU copies of the learner's current modules."""
-        weights, = learner_values(self.learner_group.foreach_learner(
+        weights = learner_values(self.learner_group.foreach_learner(
             lambda learner: learner.get_state(components=COMPONENT_RL_MODULE, inference_only=True)
-            [COMPONENT_RL_MODULE]))
+            [COMPONENT_RL_MODULE]))[0]  # the learners hold equal weights
         multi = MultiRLModuleSpec(rl_module_specs=module_specs(self.run, inference_only=True)).build()
         multi.set_state(weights)
         return {m: multi[m] for m in multi.keys()}
@@ -536,9 +538,7 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         return restored
 
     def _push_weights(self, runner_ids=None) -> None:
-        (ref, seq), = learner_values(self.learner_group.foreach_learner(
-            lambda learner: (ray.put(learner.get_state(components=COMPONENT_RL_MODULE, inference_only=True)
-                                     [COMPONENT_RL_MODULE]), learner._weights_seq_no)))
+        (ref, seq), *_ = learner_values(self.learner_group.foreach_learner(lambda learner: learner.weights_ref()))
         state = {COMPONENT_RL_MODULE: ref, WEIGHTS_SEQ_NO: seq,
                  NUM_ENV_STEPS_SAMPLED_LIFETIME: self.counters["env_steps"]}
         self.env_runner_group.foreach_env_runner("set_state", kwargs={"state": state}, remote_worker_ids=runner_ids,
@@ -581,11 +581,11 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
                     lambda learner, n=n, need=need: learner.pull_and_update(n, need)))
             c["driver_bytes"] += len(pickle.dumps(results))
             self.metrics.aggregate([r["metrics"] for r in results], key=LEARNER_RESULTS)
+            c["updates"] += n  # every learner ran n updates of the same weights, on its own shards' batches
             for r in results:
-                c["updates"] += r["updates"]
                 add_seconds(account["learner"], r.get("seconds", {}))
                 self._note_incarnations(r["incarnations"])
-                if r["updates"] < n:  # a replay restarted and holds too few records: wait for the refill
+                if r["refilling"]:  # a replay restarted and holds too few records: wait for the refill
                     self._replay_ready = False
             if c["updates"] - c["weights_pushed_at"] >= t.weights_every_updates:
                 with clock("sync"):

@@ -12,6 +12,7 @@ are (``formation.recipe.qnet.ScreenCells``); the modules' observation space stay
 
 from __future__ import annotations
 
+import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -20,6 +21,7 @@ import ray
 import torch
 from ray.rllib.algorithms.dqn.dqn_learner import QF_NEXT_PREDS, QF_PREDS, QF_TARGET_NEXT_PREDS
 from ray.rllib.algorithms.dqn.torch.dqn_torch_learner import DQNTorchLearner
+from ray.rllib.core import COMPONENT_RL_MODULE
 from ray.rllib.core.columns import Columns
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
@@ -42,7 +44,9 @@ class FormationLearner(DQNTorchLearner):
         the modules share no parameters, and torch's kernels release the GIL, so two modules train on
         two cores at once. Gradients are then clipped and applied as RLlib does."""
         modules = list(batch.keys())
-        if not self.module_threads or len(modules) < 2 or self._device is None or self._device.type != "cpu":
+        # data-parallel learners: one backward pass, so every learner's gradient all-reduces come in one order
+        if (not self.module_threads or self.distributed or len(modules) < 2 or self._device is None
+                or self._device.type != "cpu"):
             return super()._uncompiled_update(batch, **kwargs)
         if self._threads is None:
             self._threads = ThreadPoolExecutor(len(modules), thread_name_prefix="module-update")
@@ -102,14 +106,17 @@ class FormationLearner(DQNTorchLearner):
 
     def set_replays(self, handles: list, module_of_agent: list[str], answering: list[str] = (),
                     safety: bool = False) -> bool:
-        """The replay shards to pull from, each agent's module, the modules that answer the leader, and whether
-        the modules learn a safety head."""
+        """The run's replay shards, each agent's module, the modules that answer the leader, and whether the modules
+        learn a safety head. Learner ``rank`` of ``k`` pulls from shards ``rank``, ``rank + k``, ... only."""
+        rank, k = (torch.distributed.get_rank(), torch.distributed.get_world_size()) if self.distributed else (0, 1)
+        self._shards = list(range(len(handles)))[rank::k]
         self._replays = list(handles)
         self._module_of_agent = list(module_of_agent)
         self._answering = frozenset(answering)
         self._safety = safety
         self._prefetch = None
         self._turn = 0
+        self._last = None  # the last batch: updated on again while a restarted shard refills
         self._priority: dict[str, np.ndarray] = {}
         self._stats: dict[str, dict[str, float]] = {}
         self.clock = Stopwatch()
@@ -126,35 +133,53 @@ class FormationLearner(DQNTorchLearner):
         self._priority[module_id] = priority.cpu().numpy()
         return loss
 
-    def _request(self, batch_size: int, n_step: int, gamma: float, min_records: int):
-        index = self._turn % len(self._replays)
+    def _request(self, min_records: int):
+        cfg = self.config
+        index = self._shards[self._turn % len(self._shards)]
         self._turn += 1
-        return index, self._replays[index].sample.remote(batch_size, n_step, gamma, min_records)
+        # RLlib's train_batch_size_per_learner: train.batch_size split over the learners
+        return index, self._replays[index].sample.remote(cfg.train_batch_size_per_learner, cfg.n_step, cfg.gamma,
+                                                         min_records)
 
     def pull_and_update(self, num_updates: int, min_records: int = 1) -> dict:
-        """Run up to ``num_updates`` updates on batches pulled from the replay. Returns the reduced
-        ``metrics``, the ``updates`` run, and the ``incarnations`` of the replays seen (index ->
-        id). It stops early when a replay holds fewer than ``min_records`` (it restarted empty)."""
-        cfg, clock = self.config, self.clock
-        done, seen = 0, {}
+        """Run ``num_updates`` updates on batches pulled from this learner's replay shards, always that many, so that
+        data-parallel learners meet at every gradient all-reduce. Returns the reduced ``metrics``, the
+        ``incarnations`` of the shards seen (index -> id), and ``refilling``: a shard held fewer than
+        ``min_records`` (it restarted empty), and the updates after went on the last batch pulled; the driver then
+        pauses learning until the shard has refilled."""
+        clock = self.clock
+        seen, refilling = {}, False
         for _ in range(num_updates):
             if self._prefetch is None:
-                self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma, min_records)
+                self._prefetch = self._request(min_records)
             index, ref = self._prefetch
             with clock("wait"):  # for the replay's batch: the part of its sampling the prefetch did not hide
                 sample = ray.get(ref)
             self._prefetch = None
-            if sample is None:  # the replay is refilling after a restart
-                break
-            self._prefetch = self._request(cfg.train_batch_size, cfg.n_step, cfg.gamma, min_records)
-            incarnation = seen[index] = sample.pop("incarnation")
+            if sample is None:  # the shard is refilling after a restart
+                refilling = True
+                index, sample, incarnation = self._last or self._wait_for_batch(min_records)
+            else:
+                self._prefetch = self._request(min_records)
+                incarnation = seen[index] = sample.pop("incarnation")
+                self._last = index, sample, incarnation
             priority = self.update_on(sample)
-            done += 1
-            if priority is not None:
+            if priority is not None:  # (a shard that restarted since drops them: they are of its lost records)
                 self._replays[index].update_priorities.remote(sample["ids"], priority, incarnation)
         with clock("batch"):
             metrics = self.metrics.reduce()
-        return {"metrics": metrics, "updates": done, "incarnations": seen, "seconds": clock.pop()}
+        return {"metrics": metrics, "updates": num_updates, "refilling": refilling, "incarnations": seen,
+                "seconds": clock.pop()}
+
+    def _wait_for_batch(self, min_records: int) -> tuple[int, dict, str]:
+        """A batch from a shard that restarted before this learner's first update: wait for its refill."""
+        while True:
+            index, ref = self._request(min_records)
+            sample = ray.get(ref)
+            if sample is not None:
+                self._last = index, sample, sample.pop("incarnation")
+                return self._last
+            time.sleep(0.1)
 
     def update_on(self, sample: dict) -> np.ndarray | None:
         """One update of every module on a replay batch (``FrameReplay.sample``); returns the batch's new
@@ -176,6 +201,14 @@ class FormationLearner(DQNTorchLearner):
             if not self.config.prioritized:
                 return None
             return sample_priorities({m: self._priority[m] for m in batches}, n)
+
+    def weights_ref(self) -> tuple[ray.ObjectRef, int] | None:
+        """The modules' inference weights in Ray's object store, and their sequence number; None on a data-parallel
+        learner other than the first (they all hold the same weights, which go out once)."""
+        if self.distributed and torch.distributed.get_rank() != 0:
+            return None
+        weights = self.get_state(components=COMPONENT_RL_MODULE, inference_only=True)[COMPONENT_RL_MODULE]
+        return ray.put(weights), self._weights_seq_no
 
     def get_state(self, components=None, *, not_components=None, **kwargs):
         state = super().get_state(components, not_components=not_components, **kwargs)
