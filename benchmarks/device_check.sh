@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # The checks that need the accelerator machine (one GPU, 16 cores), in under 10 minutes (each Ray start there takes 22-28 s):
-#   1. the learner's samples per second on the GPU, at batch sizes from 32 to 2048;
-#   2. sampling env steps/s with 1 and 14 rollout actors, the learner idle;
-#   3. the whole path on configs/setting1.yaml (its teacher included) with 14 rollout actors and the
-#      GPU learner, with its account of every second (benchmarks/where_time_goes.py);
-#   4. the same on configs/reward_only/setting4.yaml: the env steps/s that say how far 30 minutes of
-#      the accelerator take the reward-only recipe (issue 41's aim there).
+#   1. the learner's samples per second on the GPU, at batch sizes from 32 to 2048 (docs/results/scaling.json's
+#      learner_gpu);
+#   2. each stage alone and the driver's CPU seconds per 1,000 env steps at 1 to 14 rollout actors
+#      (benchmarks/scaling.py: the many-actor step of docs/SCALING.md's model);
+#   3. the whole path on configs/reward_only/setting4.yaml with 14 rollout actors and the GPU learner, with its
+#      account of every second (benchmarks/where_time_goes.py);
+#   4. the same with 4 data-parallel CPU learners and 4 replay shards (the many-learner step).
 # The same code path as on a CPU: only resources.num_gpus_per_learner and the actors change.
 #
 # Here, first: bash benchmarks/device_bundle.sh (Ray and the other packages that machine lacks).
@@ -22,9 +23,11 @@ GPU_PATH=(--cores "$CORES" --set resources.num_rollout_actors=14 --set resources
 
 echo "== 1. the learner on the GPU (benchmarks/learner_samples.py)"
 timeout 60 $PY benchmarks/learner_samples.py configs/setting1.yaml --gpu --batches 32,128,512,2048 --updates 20
-echo "== 2. sampling alone (benchmarks/train_throughput.py --sampling)"
-timeout 140 $PY benchmarks/train_throughput.py --sampling 1,14 --seconds 10 --warmup 500
-echo "== 3. the whole path: configs/setting1.yaml, 14 rollout actors, the GPU learner (benchmarks/where_time_goes.py)"
-timeout 220 $PY benchmarks/where_time_goes.py configs/setting1.yaml --env-steps 4000 "${GPU_PATH[@]}"
-echo "== 4. the same on configs/reward_only/setting4.yaml"
+echo "== 2. each stage alone, and the driver at 1 to 14 rollout actors (benchmarks/scaling.py)"
+timeout 170 $PY benchmarks/scaling.py --seconds 5 --actors 1,4,8,14
+echo "== 3. the whole path: configs/reward_only/setting4.yaml, 14 rollout actors, the GPU learner"
 timeout 150 $PY benchmarks/where_time_goes.py configs/reward_only/setting4.yaml --env-steps 4000 "${GPU_PATH[@]}"
+echo "== 4. the same with 4 CPU learners and 4 replay shards, 12 rollout actors"
+timeout 150 $PY benchmarks/where_time_goes.py configs/reward_only/setting4.yaml --env-steps 4000 --cores "$CORES" \
+    --set resources.num_rollout_actors=12 --set resources.cpus_per_rollout_actor=1 \
+    --set resources.num_learners=4 --set resources.num_replay_shards=4

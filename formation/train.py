@@ -43,7 +43,7 @@ REFIT_ROUNDS = "refit.rounds"  # the refit phase's finished rounds, until its te
 # refit that follows training (formation refit)
 RESUMABLE = {"train.total_env_steps", "train.lr", "train.learning_starts"}
 RESUMABLE_SECTIONS = ("resources", "refit")
-FAULT_COUNTERS = ("rollout_actor_restarts", "replay_restarts", "updates_skipped")
+FAULT_COUNTERS = ("rollout_actor_restarts", "replay_restarts", "updates_skipped", "samples_lost")
 # each module's learner results in metrics.jsonl, as learner/<module>/<name>
 LEARNER_METRICS = {"q_mean": "q_mean", "td_abs_mean": "td_abs_mean", "total_loss": "total_loss",
                    "default_optimizer_learning_rate": "lr", "safety_loss": "safety_loss",

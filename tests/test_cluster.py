@@ -53,41 +53,22 @@ def answers(address: str) -> bool:
         return False
 
 
-@pytest.fixture
-def head():
-    """A one-node Ray cluster with the job server, token authentication on; yields (address, env)."""
-    temp = Path(tempfile.mkdtemp(prefix="fr-", dir="/tmp"))  # short: Ray's socket paths must fit
-    gcs, dashboard, agent, agent_grpc, runtime_env, metrics, client = free_ports(7)
-    # RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S=0: on SIGTERM the head stops its processes at once, instead of first
-    # draining its node (for Ray Serve) for up to 30 s, which it did to the end whenever a Ray had run in this
-    # process before (34 s of this test's teardown, 3 s without)
-    env = {**os.environ, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32),
-           "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "RAY_USAGE_STATS_ENABLED": "0",
-           "RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S": "0"}
-    env.pop("RAY_ADDRESS", None)
-    log = (temp / "head.log").open("w")
-    proc = subprocess.Popen(
-        [str(BIN / "ray"), "start", "--head", "--block", "--node-ip-address=127.0.0.1", f"--port={gcs}",
-         "--include-dashboard=true", "--dashboard-host=127.0.0.1", f"--dashboard-port={dashboard}",
-         f"--dashboard-agent-listen-port={agent}", f"--dashboard-agent-grpc-port={agent_grpc}",
-         f"--runtime-env-agent-port={runtime_env}", f"--metrics-export-port={metrics}",
-         f"--ray-client-server-port={client}", "--num-cpus=2", f"--temp-dir={temp / 'ray'}"],
-        env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
-    address = f"http://127.0.0.1:{dashboard}"
-    try:
-        deadline = time.monotonic() + 120
-        # wait for the dashboard's HTTP server in-process (a `ray job list` a second is a Python start each) ...
-        while not answers(address) and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.5)
-        # ... then for its job API
-        while ray_cli("job", "list", "--address", address, env=env).returncode != 0:
-            if proc.poll() is not None or time.monotonic() > deadline:
-                tail = (temp / "head.log").read_text()[-800:]
-                pytest.skip(f"Ray could not start a head node on this machine: {tail}")
-            time.sleep(1)
-        yield address, env
-    finally:
-        try:  # `ray stop` for this head only
+def start_node(temp: Path, env: dict, name: str, *args: str) -> subprocess.Popen:
+    """`ray start --block` of one node, in a session of its own (so that killing its group kills the node), with
+    its own temp dir and ports (several nodes share this machine's loopback)."""
+    node_ports = free_ports(6)
+    ports = dict(zip(("--dashboard-agent-listen-port", "--dashboard-agent-grpc-port", "--runtime-env-agent-port",
+                      "--metrics-export-port", "--node-manager-port", "--object-manager-port"), node_ports))
+    log = (temp / f"{name}.log").open("w")
+    return subprocess.Popen([str(BIN / "ray"), "start", "--block", "--node-ip-address=127.0.0.1",
+                             *(f"{k}={v}" for k, v in ports.items()), f"--temp-dir={temp / name}", *args],
+                            env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def stop_nodes(procs: list[subprocess.Popen], temp: Path) -> None:
+    """`ray stop` for these nodes only; fails on processes of theirs that outlive them."""
+    for proc in procs:
+        try:
             os.killpg(proc.pid, signal.SIGTERM)
             proc.wait(timeout=60)
         except (ProcessLookupError, subprocess.TimeoutExpired):
@@ -96,12 +77,68 @@ def head():
             os.killpg(proc.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
-        log.close()
-        leftover = subprocess.run(["pgrep", "-f", str(temp)], capture_output=True, text=True).stdout.split()
-        for pid in leftover:
-            os.kill(int(pid), signal.SIGKILL)
-        shutil.rmtree(temp, ignore_errors=True)
-        assert not leftover, f"processes of the test's Ray head outlived it: {leftover}"
+    leftover = subprocess.run(["pgrep", "-f", str(temp)], capture_output=True, text=True).stdout.split()
+    for pid in leftover:
+        os.kill(int(pid), signal.SIGKILL)
+    shutil.rmtree(temp, ignore_errors=True)
+    assert not leftover, f"processes of the test's Ray nodes outlived them: {leftover}"
+
+
+def start_cluster(head_cpus: int, worker_cpus: list[int]):
+    """A Ray cluster of a head (with the job server, token authentication on) and worker nodes; returns
+    (address, env, temp, [head, *workers])."""
+    temp = Path(tempfile.mkdtemp(prefix="fr-", dir="/tmp"))  # short: Ray's socket paths must fit
+    gcs, dashboard, client = free_ports(3)
+    # RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S=0: on SIGTERM the head stops its processes at once, instead of first
+    # draining its node (for Ray Serve) for up to 30 s, which it did to the end whenever a Ray had run in this
+    # process before (34 s of this test's teardown, 3 s without)
+    env = {**os.environ, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(32),
+           "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}", "RAY_USAGE_STATS_ENABLED": "0",
+           "RAY_GRACEFUL_SHUTDOWN_DRAIN_TIMEOUT_S": "0"}
+    env.pop("RAY_ADDRESS", None)
+    procs = [start_node(temp, env, "head", "--head", f"--port={gcs}", "--include-dashboard=true",
+                        "--dashboard-host=127.0.0.1", f"--dashboard-port={dashboard}",
+                        f"--ray-client-server-port={client}", f"--num-cpus={head_cpus}")]
+    address = f"http://127.0.0.1:{dashboard}"
+    try:
+        deadline = time.monotonic() + 120
+        # wait for the dashboard's HTTP server in-process (a `ray job list` a second is a Python start each) ...
+        while not answers(address) and procs[0].poll() is None and time.monotonic() < deadline:
+            time.sleep(0.5)
+        # ... then for its job API
+        while ray_cli("job", "list", "--address", address, env=env).returncode != 0:
+            if procs[0].poll() is not None or time.monotonic() > deadline:
+                tail = (temp / "head.log").read_text()[-800:]
+                pytest.skip(f"Ray could not start a head node on this machine: {tail}")
+            time.sleep(1)
+        for i, cpus in enumerate(worker_cpus):  # after the head is up: a worker node joins a running GCS
+            # its name as a resource of its own: the state API then tells which node is which
+            procs.append(start_node(temp, env, f"worker{i}", f"--address=127.0.0.1:{gcs}", f"--num-cpus={cpus}",
+                                    f"--resources={json.dumps({f'worker{i}': 1})}"))
+        while len(alive_nodes(gcs, env)) < 1 + len(worker_cpus):
+            if time.monotonic() > deadline + 60:
+                pytest.fail(f"the worker nodes did not join: {(temp / 'worker0.log').read_text()[-800:]}")
+            time.sleep(1)
+    except BaseException:
+        stop_nodes(procs, temp)
+        raise
+    return address, env, temp, procs, gcs
+
+
+def alive_nodes(gcs: int, env: dict) -> list[dict]:
+    """Ray's state API: the cluster's live nodes."""
+    done = ray_cli("list", "nodes", "--address", f"127.0.0.1:{gcs}", "--format", "json", "--detail", env=env)
+    return [n for n in json.loads(done.stdout or "[]") if n["state"] == "ALIVE"] if done.returncode == 0 else []
+
+
+@pytest.fixture
+def head():
+    """A one-node Ray cluster with the job server, token authentication on; yields (address, env)."""
+    address, env, temp, procs, _ = start_cluster(2, [])
+    try:
+        yield address, env
+    finally:
+        stop_nodes(procs, temp)
 
 
 def submit(address: str, env: dict, *entrypoint: str) -> subprocess.CompletedProcess:
@@ -159,3 +196,73 @@ def test_ray_job_submit_trains_on_a_cluster_and_the_checkpoint_evaluates(head, t
     assert main(["evaluate", out, "--episodes", "20", "--workers", "1", "--json", str(tmp_path / "eval.json")]) == 0
     report = json.loads((tmp_path / "eval.json").read_text())
     assert report["episodes"] == 20 and report["env_steps"] >= STEPS
+
+
+def metrics_rows(out: Path) -> list[dict]:
+    path = out / "metrics.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+
+
+def test_a_run_on_four_nodes_loses_a_node_goes_on_counts_the_loss_and_resumes(tmp_path):
+    """The service as a cluster runs it: a head (the driver and the job server, no CPUs for actors) and 3 worker
+    nodes of 2 CPUs; `ray job submit` of the smoke config with 8 rollout actors, 2 replay shards and 2
+    learners. Mid-run the worker node with the most rollout actors and no learner is killed (SIGKILL to its
+    raylet's process group): Ray restarts its actors on the other nodes, training goes on to the end, and
+    metrics.jsonl counts the restarted actors, the restarted replay shards and the sample requests lost. Then a
+    second job resumes the run from its checkpoint on the 3 nodes left."""
+    address, env, temp, procs, gcs = start_cluster(0, [2, 2, 2])
+    try:
+        out, steps = tmp_path / "run", 5000
+        done = submit(address, env, "formation", "train", "configs/smoke.yaml", "--out", str(out),
+                      "--set", "resources.num_rollout_actors=8", "--set", "resources.cpus_per_rollout_actor=0.25",
+                      "--set", "resources.num_replay_shards=2", "--set", "resources.num_learners=2",
+                      "--set", "train.learning_starts=200", "--set", f"train.total_env_steps={steps}")
+        assert done.returncode == 0, done.stderr[-2000:]
+        job = re.search(r"raysubmit_\w+", done.stdout + done.stderr).group(0)
+        deadline = time.monotonic() + 300
+        while not (metrics_rows(out) and metrics_rows(out)[-1]["learner_updates"] > 0
+                   and (out / "checkpoint").is_dir()):
+            assert time.monotonic() < deadline, ray_cli("job", "logs", "--address", address, job,
+                                                        env=env).stdout[-3000:]
+            time.sleep(1)
+
+        listed = ray_cli("list", "actors", "--address", f"127.0.0.1:{gcs}", "--format", "json", "--detail",
+                         "--filter", "state=ALIVE", "--limit", "1000", env=env)
+        name_of = {n["node_id"]: next(k for k in n["resources_total"] if k.startswith("worker"))
+                   for n in alive_nodes(gcs, env) if not n["is_head_node"]}
+        on = {name: {"rollout": 0, "learner": 0, "replay": 0} for name in name_of.values()}
+        for actor in json.loads(listed.stdout):
+            kind = {"RolloutActor": "rollout", "ReplayActor": "replay"}.get(
+                actor["class_name"], "learner" if "_WrappedExecutable" in actor["class_name"] else None)
+            if kind and actor["node_id"] in name_of:
+                on[name_of[actor["node_id"]]][kind] += 1
+        assert sum(n["rollout"] for n in on.values()) == 8 and sum(n["learner"] for n in on.values()) == 2, on
+        victim = max((name for name in on if on[name]["learner"] == 0), key=lambda name: on[name]["rollout"])
+        assert on[victim]["rollout"] > 0, on
+        killed_at = metrics_rows(out)[-1]["env_steps"]
+        os.killpg(procs[1 + int(victim[len("worker"):])].pid, signal.SIGKILL)
+
+        logs = ray_cli("job", "logs", "--address", address, "--follow", job, env=env, timeout=400)
+        status = ray_cli("job", "status", "--address", address, job, env=env)
+        assert f"Job '{job}' succeeded" in status.stdout + status.stderr, logs.stdout[-3000:]
+        rows = metrics_rows(out)
+        last = rows[-1]
+        assert last["env_steps"] >= steps > killed_at  # training went on after the loss
+        assert last["faults/rollout_actor_restarts"] >= on[victim]["rollout"], (on, last)
+        assert last["faults/replay_restarts"] == on[victim]["replay"], (on, last)
+        # at most 2 requests in flight per actor (max_requests_in_flight_per_env_runner)
+        assert 0 <= last["faults/samples_lost"] <= 2 * on[victim]["rollout"], last
+        saved = json.loads((out / "result.json").read_text())["env_steps"]
+
+        # the run resumes from its checkpoint on the nodes left
+        done = submit(address, env, "formation", "train", "--out", str(out), "--resume",
+                      "--set", f"train.total_env_steps={steps + 1000}")
+        resumed = re.search(r"raysubmit_\w+", done.stdout + done.stderr).group(0)
+        logs = ray_cli("job", "logs", "--address", address, "--follow", resumed, env=env, timeout=400)
+        status = ray_cli("job", "status", "--address", address, resumed, env=env)
+        assert f"Job '{resumed}' succeeded" in status.stdout + status.stderr, logs.stdout[-3000:]
+        after = metrics_rows(out)[len(rows):]
+        assert after and after[0]["env_steps"] >= saved and after[-1]["env_steps"] >= steps + 1000
+        assert after[-1]["faults/rollout_actor_restarts"] >= last["faults/rollout_actor_restarts"]  # carried on
+    finally:
+        stop_nodes(procs, temp)

@@ -102,16 +102,17 @@ def test_a_page_stays_short(name: str):
     assert lines <= MAX_LINES[name], f"{name} has {lines} lines; at most {MAX_LINES[name]}"
 
 
-def test_results_tables_are_those_results_tables_py_prints():
-    """Each table experiments/results_tables.py prints (from docs/results/*.json) stands verbatim in RESULTS.md."""
-    printed = subprocess.run([sys.executable, "experiments/results_tables.py"], cwd=ROOT, capture_output=True,
-                             text=True, timeout=120, check=True).stdout
+@pytest.mark.parametrize("script, page", [("experiments/results_tables.py", "docs/RESULTS.md"),
+                                          ("experiments/scaling_model.py", "docs/SCALING.md")])
+def test_a_pages_tables_are_those_its_script_prints(script: str, page: str):
+    """Each block a script prints (from docs/results/*.json) stands verbatim in its page."""
+    printed = subprocess.run([sys.executable, script], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                             check=True).stdout
     tables = [block.strip() for block in re.split(r"\n\s*\n", printed) if block.strip()]
-    assert tables, "experiments/results_tables.py printed no table"
-    results = (ROOT / "docs" / "RESULTS.md").read_text(encoding="utf-8")
-    missing = [table.splitlines()[0] for table in tables if table not in results]
-    assert not missing, ("docs/RESULTS.md lacks these tables as experiments/results_tables.py prints them "
-                         "(rerun it and paste): " + "; ".join(missing))
+    assert tables, f"{script} printed nothing"
+    text = (ROOT / page).read_text(encoding="utf-8")
+    missing = [table.splitlines()[0] for table in tables if table not in text]
+    assert not missing, f"{page} lacks these blocks as {script} prints them (rerun it and paste): " + "; ".join(missing)
 
 
 def test_the_readmes_settings_table_is_the_one_results_tables_py_prints():

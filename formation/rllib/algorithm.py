@@ -378,9 +378,10 @@ def missing_resources(run: RunConfig, have: dict[str, float]) -> str | None:
     res = run.resources
     asked = {kind: sum(b.get(kind, 0.0) for b in resource_bundles(run)) for kind in ("CPU", "GPU")}
     if asked["GPU"] > have.get("GPU", 0):
-        learners = "" if res.num_learners == 1 else f" by {res.num_learners} learners"
-        return (f"resources.num_gpus_per_learner: {asked['GPU']:g} GPU asked{learners}, the Ray cluster has "
-                f"{have.get('GPU', 0):g}; allowed here: 0 (the learners then run on CPU)")
+        by, then = ("", "the learner then runs") if res.num_learners == 1 else \
+            (f" by {res.num_learners} learners", "the learners then run")
+        return (f"resources.num_gpus_per_learner: {asked['GPU']:g} GPU asked{by}, the Ray cluster has "
+                f"{have.get('GPU', 0):g}; allowed here: 0 ({then} on CPU)")
     if asked["CPU"] > have.get("CPU", 0):
         learners = "the learner" if res.num_learners == 1 else f"{res.num_learners} learners"
         return (f"resources.num_rollout_actors: {res.num_rollout_actors} actors x {res.cpus_per_rollout_actor:g} CPU "
@@ -502,9 +503,12 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
                         for i in range(run.resources.num_replay_shards)]
         # driver_bytes: pickled size of all that rollout actors and the learner returned to the driver
         # updates_skipped: what the replay ratio owed while a restarted replay refilled (never run)
+        # samples_lost: sample requests that died with their rollout actor (each up to steps_per_sample x
+        # games_per_actor env steps, never counted in env_steps)
         self.counters = {"env_steps": 0, "updates": 0, "episodes": 0, "weights_pushed_at": 0, "driver_bytes": 0,
                          "next_eval_at": run.eval.every_env_steps, "updates_skipped": 0,
-                         "rollout_actor_restarts": 0, "replay_restarts": 0}
+                         "rollout_actor_restarts": 0, "replay_restarts": 0, "samples_lost": 0}
+        self._samples = {"sent": 0, "answered": 0}  # sample requests of this process's life
         self.last_eval: dict = {}
         self._replay_ready = False
         self._incarnations: dict[int, str] = {}  # of each replay shard, as the learner last saw it
@@ -565,9 +569,11 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         clock, account = self.clock, self.account
         if not learning or owed_ahead < lead:
             with clock("request"):
-                self.env_runner_group.foreach_env_runner_async("sample", tag="sample")
+                self._samples["sent"] += self.env_runner_group.foreach_env_runner_async("sample", tag="sample")
         with clock("fetch"):  # mostly waiting: up to 10 ms for a rollout actor's answer
             ready = self.env_runner_group.fetch_ready_async_reqs(tags="sample", timeout_seconds=0.01)
+        self._samples["answered"] += len(ready)
+        self._count_lost_samples()
         for _, result in ready:
             c["env_steps"] += result["env_steps"]
             c["driver_bytes"] += len(pickle.dumps(result))
@@ -599,6 +605,14 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
                 self._evaluate_now()
             c["next_eval_at"] += self.run.eval.every_env_steps
         self._log_counters()
+
+    def _count_lost_samples(self) -> None:
+        """Requests neither answered nor in flight died with their actor (RLlib drops a failed actor's requests)."""
+        s = self._samples
+        lost = s["sent"] - s["answered"] - self.env_runner_group.num_in_flight_async_reqs(tag="sample")
+        if lost > 0:
+            self.counters["samples_lost"] += lost
+            s["answered"] += lost
 
     def time_account(self) -> dict[str, dict[str, float]]:
         """Seconds in each stage of each kind of process since the last call, summed over the processes
