@@ -67,10 +67,10 @@ class Model:
                 "weights broadcast": NETWORK / (nodes * self.weights * ratio / self.weights_every)}
 
     def best(self, actors: int, gpu: bool, batch: int | None = None) -> dict:
-        """The fewest learners and shards that reach the highest rate at ``actors``; ``batch``: the recipe's, or
-        grown with the learners (``batch`` x learners)."""
+        """The fewest learners and shards that reach the highest rate at ``actors`` (within 2%); ``batch``: fixed
+        (each of k learners takes batch / k records, at least 8), or None: the recipe's grown with the learners."""
         options = []
-        for k in (k for k in LEARNERS if k <= actors):
+        for k in (k for k in LEARNERS if k <= actors and (batch is None or batch // k >= 8)):
             b = batch or self.batch * k
             for s in sorted({k, *range(k, min(actors, 64) + 1, k)}):
                 caps = self.caps(actors, s, k, b, gpu)
@@ -125,7 +125,8 @@ def stages(figures: dict) -> list[str]:
 
 
 def driver(figures: dict) -> list[str]:
-    rows = ["| rollout actors | driver CPU seconds per 1,000 env steps | env steps/s (actors sharing 2 cores) |",
+    cores = figures["machine"]["cores"]
+    rows = [f"| rollout actors | driver CPU seconds per 1,000 env steps | env steps/s (actors sharing {cores} cores) |",
             "|---:|---:|---:|"]
     rows += [f"| {d['actors']} | {d['cpu_s_per_1000_env_steps']:.3f} | {d['env_steps_per_s']:,.0f} |"
              for d in figures["driver"]]
@@ -161,6 +162,9 @@ def main() -> None:
     parser(__doc__).parse_args()
     figures = json.loads((RESULTS / "scaling.json").read_text())
     model = Model(figures)
+    m, gpu = figures["machine"], figures["learner_gpu"]
+    print(f"Measured on {m['cpu']} ({m['cores']} cores, torch {m['torch']}); the GPU learner on {gpu['device']} "
+          f"({gpu['measured']}, {gpu['by']}).\n")
     print("\n".join(stages(figures)) + "\n")
     print("\n".join(driver(figures)) + "\n")
     for gpu in (False, True):

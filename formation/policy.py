@@ -2,6 +2,7 @@
 
     policy = load("runs/s1")             # a run folder of `formation train`: its final team
     policy = load("runs/s1/checkpoint")  # the checkpoint inside one: the networks as trained
+    policy = load(result.checkpoint.path)  # a Tune trial's checkpoint (it holds its run's config.yaml)
     policy = load("exports/s1")          # a folder written by `formation export` (policy.json, <module>.pt)
 
     env = formation.env.parallel_env(**policy.env_config)
@@ -10,10 +11,10 @@
 
 A run's modules are read from ``checkpoint/learner_group/learner/rl_module/<module>/module_state.pkl``
 (plain numpy arrays) into the same ``DuelingQNetwork`` the RLlib module wraps, built from the run's
-``config.yaml`` exactly as training builds it; no Ray cluster is started. An export holds each
-module's ``q_network`` state dict (``<module>.pt``) and a card, ``policy.json``, with everything
-needed to rebuild the networks with torch alone. Greedy actions are the argmax of the Q-values, as
-in training's greedy evaluation (``FormationAlgorithm.play_greedy``).
+``config.yaml`` (the run folder's, or the copy every checkpoint holds) exactly as training builds it; no Ray
+cluster is started. An export holds each module's ``q_network`` state dict (``<module>.pt``) and a card,
+``policy.json``, with everything needed to rebuild the networks with torch alone. Greedy actions are the argmax
+of the Q-values, as in training's greedy evaluation (``FormationDQN.play_greedy``).
 
 The card's ``training`` section says how the team was trained (``Policy.training``): the whole resolved
 run config, env steps and learner updates, wall time summed over ``--resume`` sessions, hardware, the
@@ -44,8 +45,10 @@ from formation.shield import Shield, shielded_moves
 
 FORMAT_VERSION = 1
 CARD = "policy.json"
-RL_MODULES = Path("checkpoint") / "learner_group" / "learner" / "rl_module"
-CHECKPOINT_STATE = Path("checkpoint") / "algorithm_state.pkl"  # the counters, among RLlib's own state
+# in a checkpoint folder (a run folder's checkpoint/, or a Tune trial's checkpoint_NNNNNN/)
+RL_MODULES = Path("learner_group") / "learner" / "rl_module"
+CHECKPOINT_STATE = "algorithm_state.pkl"  # the counters, among RLlib's own state
+CHECKPOINT_CONFIG = "config.yaml"  # the run config, written with every checkpoint (FormationDQN.save_to_path)
 # a run whose config has a refit phase keeps its final team here, as an export (``formation.train``)
 REFITTED = "refitted"
 DEFAULT_EVAL = {"episodes": 200, "seed": 1_000_000}
@@ -244,18 +247,23 @@ def load(path: str | Path) -> Policy:
                           f"its checkpoint/ folder, or an exported policy folder ({CARD})")
     if (path / CARD).is_file():
         return _load_export(path)
-    if (path / "config.yaml").is_file() and (path / RL_MODULES.parts[0]).is_dir():
+    if (path / "config.yaml").is_file() and (path / "checkpoint").is_dir():
         return _load_export(path / REFITTED) if (path / REFITTED / CARD).is_file() else _load_run(path)
-    if path.name == RL_MODULES.parts[0] and (path.parent / "config.yaml").is_file():
+    if path.name == "checkpoint" and (path.parent / "config.yaml").is_file():
         return _load_run(path.parent)
+    if (path / CHECKPOINT_CONFIG).is_file() and (path / RL_MODULES).is_dir():  # a checkpoint on its own
+        return _load_run(path, checkpoint=path)
     raise PolicyError(f"checkpoint: {str(path)!r} is not a checkpoint; give a run folder (config.yaml, "
-                      f"checkpoint/), its checkpoint/ folder, or an exported policy folder ({CARD})")
+                      f"checkpoint/), its checkpoint/ folder, a Tune trial's checkpoint folder, or an exported "
+                      f"policy folder ({CARD})")
 
 
 # ---------------------------------------------------------------------- run folders
-def _load_run(run_dir: Path) -> Policy:
+def _load_run(run_dir: Path, checkpoint: Path | None = None) -> Policy:
+    """A run folder's team (its ``checkpoint/``), or a checkpoint's on its own (``run_dir`` = ``checkpoint``)."""
     from formation.recipe.team import module_of_agent, network_specs
 
+    checkpoint = checkpoint or run_dir / "checkpoint"
     try:
         run = RunConfig.load_saved(run_dir / "config.yaml")
     except ConfigError as err:
@@ -263,9 +271,9 @@ def _load_run(run_dir: Path) -> Policy:
     specs, agent_modules = network_specs(run), module_of_agent(run)
     networks = {}
     for module, spec in specs.items():
-        state_file = run_dir / RL_MODULES / module / "module_state.pkl"
+        state_file = checkpoint / RL_MODULES / module / "module_state.pkl"
         if not state_file.is_file():
-            raise PolicyError(f"checkpoint: {str(run_dir / RL_MODULES)!r} has no module {module!r} "
+            raise PolicyError(f"checkpoint: {str(checkpoint / RL_MODULES)!r} has no module {module!r} "
                               f"(expected {str(state_file)!r}); the run may not have saved a checkpoint yet")
         try:
             with state_file.open("rb") as f:
@@ -276,7 +284,7 @@ def _load_run(run_dir: Path) -> Policy:
             raise PolicyError(f"checkpoint: {str(state_file)!r} is damaged or not a module state "
                               f"({type(err).__name__})") from None
         networks[module] = _with_weights(spec, weights, state_file)
-    counters = _counters(run_dir)
+    counters = _counters(checkpoint)
     policy = Policy(run.game, networks, specs, agent_modules, source=str(run_dir),
                     env_steps=_env_steps(run_dir, counters),
                     eval_settings={"episodes": run.eval.episodes, "seed": run.eval.seed})
@@ -310,10 +318,10 @@ def _json_object(path: Path) -> dict | None:
     return value if isinstance(value, dict) else None
 
 
-def _counters(run_dir: Path) -> dict:
-    """The counters the run's checkpoint saved ({} if it cannot be read)."""
+def _counters(checkpoint: Path) -> dict:
+    """The counters the checkpoint saved ({} if it cannot be read)."""
     try:
-        with (run_dir / CHECKPOINT_STATE).open("rb") as f:
+        with (checkpoint / CHECKPOINT_STATE).open("rb") as f:
             return dict(pickle.load(f)["formation_counters"])
     except (OSError, pickle.UnpicklingError, EOFError, KeyError, TypeError, ValueError, AttributeError,
             ImportError):

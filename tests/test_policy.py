@@ -183,7 +183,7 @@ def test_a_truncated_export_module_is_one_line_and_no_traceback(export_dir, tmp_
 def test_a_truncated_checkpoint_module_or_a_foreign_card_is_one_line(run_dir, export_dir, tmp_path, capfd):
     bad_run = tmp_path / "run"
     shutil.copytree(run_dir, bad_run)
-    state = bad_run / RL_MODULES / "follower" / "module_state.pkl"
+    state = bad_run / "checkpoint" / RL_MODULES / "follower" / "module_state.pkl"
     state.write_bytes(state.read_bytes()[:500])
     line = _one_line_error(capfd, main(["evaluate", str(bad_run / "checkpoint")]))
     assert "module_state.pkl" in line and "damaged" in line

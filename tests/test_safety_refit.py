@@ -343,8 +343,8 @@ def test_the_command_takes_its_settings_from_a_run_folders_refit_section(tmp_pat
     torch.manual_seed(0)
     for module, spec in specs.items():  # a checkpoint's module state, as RLlib saves it
         state = {f"q_network.{k}": v.numpy() for k, v in spec.build().state_dict().items()}
-        (folder / RL_MODULES / module).mkdir(parents=True)
-        with (folder / RL_MODULES / module / "module_state.pkl").open("wb") as f:
+        (folder / "checkpoint" / RL_MODULES / module).mkdir(parents=True)
+        with (folder / "checkpoint" / RL_MODULES / module / "module_state.pkl").open("wb") as f:
             pickle.dump(state, f)
     assert main(["refit", str(folder), str(tmp_path / "out"), "--set", "refit.epochs=2"]) == 0
     assert "1 round(s) of 30 games, labels over 2 steps" in capsys.readouterr().out

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import ray
+import yaml
 from ray.rllib.algorithms.dqn import DQN, DQNConfig
 from ray.rllib.callbacks.utils import make_callback
 from ray.rllib.core import COMPONENT_RL_MODULE
@@ -48,6 +49,7 @@ from ray.rllib.utils.metrics import (
 
 from formation.config import ConfigError, RunFailed
 from formation.evaluate import play_greedy
+from formation.policy import CHECKPOINT_CONFIG
 from formation.recipe.config import STOCK_TRAIN, RunConfig, TrainSettings
 from formation.recipe.learn import loss_weights
 from formation.recipe.replay import FrameReplay
@@ -114,7 +116,7 @@ NOT_HONOURED: dict[str, str] = {
     "env_config": "the game is the run config's game section",
     "evaluation_interval": "greedy evaluation runs every eval.every_env_steps env steps on eval.episodes games, "
                            "reported under result['evaluation']",
-    "evaluation_num_env_runners": "greedy evaluation runs in the algorithm's process (eval.episodes)",
+    "evaluation_num_env_runners": "greedy evaluation runs in a Ray task of its own beside training (eval.episodes)",
     "torch_compile_learner": "its learner runs torch eagerly",
     "optimizer": "its learner's Adam takes train.lr and clips to train.grad_clip",
     "_env_to_module_connector": "its rollout actors read the games' observations themselves, not through connectors",
@@ -400,6 +402,33 @@ def replay_shard(run: RunConfig) -> dict:
     return {"args": args, "options": {"memory": memory, "scheduling_strategy": "SPREAD"}}
 
 
+def modules_of(run: RunConfig, weights: dict) -> dict:
+    """The run's modules (inference parts) with ``weights``, on the CPU."""
+    multi = MultiRLModuleSpec(rl_module_specs=module_specs(run, inference_only=True)).build()
+    multi.set_state(weights)
+    return {m: multi[m] for m in multi.keys()}
+
+
+def play_team(run: RunConfig, modules: dict, episodes: int, seed: int, record: int = 0) -> dict:
+    """``formation.evaluate.play_greedy`` of the team as ``formation.policy.load`` restores it (with its safety
+    heads' veto, if any)."""
+    from formation.policy import Policy
+
+    specs = network_specs(run)
+    team = Policy(run.game, {m: modules[m].q_network for m in specs}, specs, module_of_agent(run), source="training")
+    return play_greedy(run.game, team.act_batch, episodes, seed, record=record)
+
+
+@ray.remote(num_cpus=0)  # short and periodic: it shares the cores rather than waiting for one of its own
+def greedy_evaluation(run: dict, weights: dict, episodes: int, seed: int) -> dict:
+    """The periodic greedy evaluation's summary, in a Ray task beside training."""
+    import torch
+
+    torch.set_num_threads(1)
+    run = RunConfig.from_saved(run)
+    return play_team(run, modules_of(run, weights), episodes, seed)["summary"]
+
+
 class GreedyEvaluationMixin:
     """What both paths share: counters, greedy evaluation, and their place in checkpoints."""
 
@@ -409,16 +438,41 @@ class GreedyEvaluationMixin:
         return self.play_greedy(episodes, seed)["summary"]
 
     def _evaluate_now(self) -> None:
-        """The periodic greedy evaluation (``eval.every_env_steps``), between RLlib's ``on_evaluate_start`` and
-        ``on_evaluate_end`` callbacks; ``last_eval`` keeps it, ``result["evaluation"]`` reports it."""
+        """Start the periodic greedy evaluation (``eval.every_env_steps``) on the weights of now, in a Ray task of its
+        own (``greedy_evaluation``), after RLlib's ``on_evaluate_start`` callbacks; training goes on meanwhile.
+        ``_collect_evaluation`` takes its summary in."""
         make_callback("on_evaluate_start", callbacks_objects=self.callbacks,
                       callbacks_functions=self.config.callbacks_on_evaluate_start,
                       kwargs=dict(algorithm=self, metrics_logger=self.metrics))
-        self.last_eval = self.evaluate_greedy()
+        weights = ray.put(self._inference_weights())
+        self._evaluation = (self.counters["env_steps"],
+                            greedy_evaluation.remote(self.run.to_dict(), weights, self.run.eval.episodes,
+                                                     self.run.eval.seed))
+
+    def _evaluation_due(self) -> bool:
+        """Whether to start the next evaluation: its env steps reached, and the last one back."""
+        return self._evaluation is None and self.counters["env_steps"] >= self.counters["next_eval_at"]
+
+    def _collect_evaluation(self) -> None:
+        """The evaluation in flight, once it is back: ``last_eval`` keeps its summary and the env steps of the
+        weights it played (``result["evaluation"]`` reports both), then RLlib's ``on_evaluate_end`` callbacks."""
+        if self._evaluation is None:
+            return
+        env_steps, ref = self._evaluation
+        if not ray.wait([ref], timeout=0)[0]:
+            return
+        self._evaluation = None
+        self.last_eval = {**ray.get(ref), "env_steps": env_steps}
         make_callback("on_evaluate_end", callbacks_objects=self.callbacks,
                       callbacks_functions=self.config.callbacks_on_evaluate_end,
                       kwargs=dict(algorithm=self, metrics_logger=self.metrics,
                                   evaluation_metrics=evaluation_results(self.last_eval, self.run)))
+
+    def _evaluate_when_due(self) -> None:
+        self._collect_evaluation()
+        if self._evaluation_due():
+            self._evaluate_now()
+            self.counters["next_eval_at"] += self.run.eval.every_env_steps
 
     def _log_evaluation(self) -> None:
         """``result["evaluation"]``: the last greedy evaluation, NaN before the first."""
@@ -426,27 +480,29 @@ class GreedyEvaluationMixin:
             self.metrics.log_value((EVALUATION_RESULTS, *key), value, window=1)
 
     def play_greedy(self, episodes: int | None = None, seed: int | None = None, record: int = 0) -> dict:
-        from formation.policy import Policy
-
         run = self.run
-        modules = self.local_modules()
-        specs = network_specs(run)
-        # the team as formation.policy.load restores it (with its safety heads' veto, if any)
-        team = Policy(run.game, {m: modules[m].q_network for m in specs}, specs, module_of_agent(run),
-                      source="training")
-        return play_greedy(run.game, team.act_batch, episodes or run.eval.episodes,
-                           run.eval.seed if seed is None else seed, record=record)
+        return play_team(run, self.local_modules(), episodes or run.eval.episodes,
+                         run.eval.seed if seed is None else seed, record)
+
+    def _inference_weights(self) -> dict:
+        """The learner's current module weights, inference parts only (the learners hold equal weights)."""
+        return learner_values(self.learner_group.foreach_learner(
+            lambda learner: learner.get_state(components=COMPONENT_RL_MODULE, inference_only=True)
+            [COMPONENT_RL_MODULE]))[0]
 
     def local_modules(self) -> dict:
         """CPU copies of the learner's current modules."""
-        weights = learner_values(self.learner_group.foreach_learner(
-            lambda learner: learner.get_state(components=COMPONENT_RL_MODULE, inference_only=True)
-            [COMPONENT_RL_MODULE]))[0]  # the learners hold equal weights
-        multi = MultiRLModuleSpec(rl_module_specs=module_specs(self.run, inference_only=True)).build()
-        multi.set_state(weights)
-        return {m: multi[m] for m in multi.keys()}
+        return modules_of(self.run, self._inference_weights())
 
-    # -- checkpoints: our counters ride along in algorithm_state.pkl
+    # -- checkpoints: our counters ride along in algorithm_state.pkl, the run config beside it
+    def save_to_path(self, path=None, *, filesystem=None, **kwargs) -> str:
+        """RLlib's checkpoint, and the run config as ``config.yaml`` in it, so that ``formation.policy.load`` and
+        ``formation export`` read a checkpoint on its own (a Tune trial's) without Ray."""
+        path = super().save_to_path(path, filesystem=filesystem, **kwargs)
+        if filesystem is None:  # a local folder (formation train uploads its own copies)
+            Path(path, CHECKPOINT_CONFIG).write_text(yaml.safe_dump(self.run.to_dict(), sort_keys=False))
+        return path
+
     def get_state(self, *args, **kwargs):
         state = super().get_state(*args, **kwargs)
         state["formation_counters"] = dict(self.counters)
@@ -510,6 +566,7 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
                          "rollout_actor_restarts": 0, "replay_restarts": 0, "samples_lost": 0}
         self._samples = {"sent": 0, "answered": 0}  # sample requests of this process's life
         self.last_eval: dict = {}
+        self._evaluation = None  # (env steps of its weights, its task) while one plays
         self._replay_ready = False
         self._incarnations: dict[int, str] = {}  # of each replay shard, as the learner last saw it
         self._started = time.perf_counter()
@@ -600,10 +657,8 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         elif not learning:
             with clock("fetch"):
                 time.sleep(0.01)
-        if c["env_steps"] >= c["next_eval_at"]:
-            with clock("evaluation"):
-                self._evaluate_now()
-            c["next_eval_at"] += self.run.eval.every_env_steps
+        with clock("evaluation"):  # starting one, or taking one in: it plays in a task of its own
+            self._evaluate_when_due()
         self._log_counters()
 
     def _count_lost_samples(self) -> None:
@@ -706,6 +761,7 @@ class StockFormationDQN(GreedyEvaluationMixin, DQN):
         self.counters = {"env_steps": 0, "updates": 0, "episodes": 0, "driver_bytes": 0,
                          "next_eval_at": self.run.eval.every_env_steps}
         self.last_eval: dict = {}
+        self._evaluation = None
         self._started = time.perf_counter()
         update = self.learner_group.update
 
@@ -720,15 +776,14 @@ class StockFormationDQN(GreedyEvaluationMixin, DQN):
         c = self.counters
         c["env_steps"] = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED_LIFETIME), default=0))
         c["episodes"] = int(self.metrics.peek((ENV_RUNNER_RESULTS, NUM_EPISODES_LIFETIME), default=0))
-        if c["env_steps"] >= c["next_eval_at"]:
-            self._evaluate_now()
-            c["next_eval_at"] += self.run.eval.every_env_steps
+        self._evaluate_when_due()
         self._log_evaluation()
 
 
-# the greedy evaluation's rates (formation.evaluate.play_greedy's summary) under result["evaluation"]
+# the greedy evaluation's rates (formation.evaluate.play_greedy's summary) under result["evaluation"], and the env
+# steps of the weights it played
 EVALUATION_RATES = ("success", "leader_collision", "follower_collision", "formation_broken", "timeout",
-                    "steps_success_mean")
+                    "steps_success_mean", "env_steps")
 
 
 def evaluation_results(summary: dict, run: RunConfig) -> dict:
