@@ -10,7 +10,8 @@ ARG VARIANT
 ARG TORCH_VERSION=2.13.0
 
 # torch is not in the Ray image: the CPU build for the cpu variant (a few hundred MB), the CUDA
-# build from PyPI for the gpu variant.
+# build from PyPI for the gpu variant. The pinned torch wheel brings its own CUDA runtime (the nvidia-* wheels
+# it pins), so the CUDA the learner runs on is fixed by TORCH_VERSION; a GPU node needs only a driver for it.
 RUN if [ "$VARIANT" = "cpu" ]; then \
         pip install --no-cache-dir "torch==${TORCH_VERSION}" --index-url https://download.pytorch.org/whl/cpu; \
     else \

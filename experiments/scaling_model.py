@@ -158,6 +158,19 @@ def configs(model: Model) -> list[str]:
     return out
 
 
+def learners_table() -> list[str]:
+    """One learner against two at equal samples (docs/results/learners.json: learners_at_equal_samples.py)."""
+    runs = json.loads((RESULTS / "learners.json").read_text())["runs"]
+    seeds = sorted({r["seed"] for r in runs})
+    rows = ["| learners | " + " | ".join(f"seed {s}" for s in seeds) + " | mean |",
+            "|---:|" + "---:|" * (len(seeds) + 1)]
+    for k in sorted({r["learners"] for r in runs}):
+        rates = {r["seed"]: r["success"] for r in runs if r["learners"] == k}
+        rows.append(f"| {k} | " + " | ".join(f"{rates[s]:.1%}" for s in seeds)
+                    + f" | {sum(rates.values()) / len(rates):.1%} |")
+    return rows
+
+
 def main() -> None:
     parser(__doc__).parse_args()
     figures = json.loads((RESULTS / "scaling.json").read_text())
@@ -174,6 +187,7 @@ def main() -> None:
         print(f"### {kind}, the batch grown with the learners\n")
         print("\n".join(table(model, gpu, grow=True)) + "\n")
     print("\n".join(configs(model)))
+    print("\n".join(learners_table()) + "\n")
 
 
 if __name__ == "__main__":

@@ -56,6 +56,10 @@ def test_the_dockerfile_builds_on_the_pinned_ray_image_and_copies_what_exists():
         for name in source.split():
             assert (REPO / name).exists(), f"the Dockerfile copies {name}, which is not in the repo"
     assert "pip install --no-cache-dir ." in text  # the package, so `formation` is on the PATH
+    # torch, and with it the gpu image's CUDA runtime, is the version the Makefile pins
+    makefile = (REPO / "Makefile").read_text()
+    assert re.search(r"^ARG TORCH_VERSION=(\S+)$", text, re.M).group(1) == \
+        re.search(r"^TORCH \?= torch==(\S+)$", makefile, re.M).group(1)
 
 
 def test_the_rayjob_runs_formation_train_on_a_gpu_learner_and_cpu_rollout_workers():
@@ -85,9 +89,11 @@ def test_the_rayjob_runs_formation_train_on_a_gpu_learner_and_cpu_rollout_worker
     assert gpus["gpu-learner"] == 1 and gpus["cpu-rollout"] == 0
     gpu_image = cluster["workerGroupSpecs"][0]["template"]["spec"]["containers"][0]["image"]
     assert gpu_image == "formation:gpu"
-    # what the entrypoint asks for fits the worker groups (else the run fails fast on the cluster)
+    # the GPU pod offers Ray no CPUs: the rollout actors stay off it, the GPU learner (which asks no CPU) goes there
+    assert cluster["workerGroupSpecs"][0]["rayStartParams"] == {"num-cpus": "0"}
+    # what the entrypoint asks for fits the CPU worker groups (else the run fails fast on the cluster)
     cpus = sum(int(g["replicas"]) * int(g["template"]["spec"]["containers"][0]["resources"]["limits"]["cpu"])
-               for g in cluster["workerGroupSpecs"])
+               for g in cluster["workerGroupSpecs"] if g["rayStartParams"].get("num-cpus") != "0")
     assert run.resources.num_rollout_actors * run.resources.cpus_per_rollout_actor <= cpus
     assert run.resources.num_gpus_per_learner <= sum(gpus.values())
 
@@ -101,6 +107,16 @@ def test_the_launcher_yaml_passes_rays_schema_and_uses_our_images():
     images |= {t["docker"]["worker_image"] for t in config["available_node_types"].values() if "docker" in t}
     assert images == dockerfile_images()
     assert config["available_node_types"]["gpu_learner"]["docker"]["worker_image"] == "formation:gpu"
+    assert config["available_node_types"]["gpu_learner"]["resources"] == {"CPU": 0, "GPU": 1}  # no rollout actors
+    # the machine image is pinned: Ray 2.60's own default for the region (read from its source: importing that
+    # module needs boto3)
+    import ray.autoscaler
+
+    source = (Path(ray.autoscaler.__file__).parent / "_private" / "aws" / "config.py").read_text()
+    region = config["provider"]["region"]
+    default = re.search(rf'"{region}": "(ami-[0-9a-f]+)"', source).group(1)
+    for node_type in config["available_node_types"].values():
+        assert node_type["node_config"]["ImageId"] == default
     # `ray start` turns token authentication on only where it finds a token: every node starts with it on, and
     # gets the token made beforehand on the user's machine
     for command in config["head_start_ray_commands"] + config["worker_start_ray_commands"]:

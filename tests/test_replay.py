@@ -252,7 +252,8 @@ def test_a_replay_shard_asks_ray_for_the_memory_it_takes_and_shards_spread_over_
     from formation.recipe.team import replay_frame_shape
     from formation.rllib.algorithm import replay_shard
 
-    run = RunConfig.load("configs/reward_only/setting3.yaml", {"resources.num_replay_shards": 4})
+    run = RunConfig.load("configs/reward_only/setting3.yaml", {"resources.num_replay_shards": 4,
+                                                                "resources.num_rollout_actors": 4})
     shard = replay_shard(run)
     capacity, frame_shape, agents, stack = shard["args"]
     assert (capacity, frame_shape, agents, stack) == (25_000, replay_frame_shape(run), 2, 4)

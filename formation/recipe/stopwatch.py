@@ -7,6 +7,7 @@ under a microsecond, against stages of a millisecond or more, so the clock is al
 
 from __future__ import annotations
 
+import pickle
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -34,3 +35,10 @@ def add_seconds(total: dict[str, float], more: dict[str, float]) -> dict[str, fl
     for stage, seconds in more.items():
         total[stage] = total.get(stage, 0.0) + seconds
     return total
+
+
+def with_size(answer: dict) -> dict:
+    """``answer`` with ``bytes``: its pickled size, measured by the process that sends it, so that the receiver (the
+    driver) accounts for the bytes it takes in without pickling them again."""
+    answer["bytes"] = len(pickle.dumps(answer))
+    return answer

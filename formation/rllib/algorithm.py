@@ -33,14 +33,9 @@ from ray.rllib.utils.from_config import NotProvided
 from ray.rllib.utils.metrics import (
     ENV_RUNNER_RESULTS,
     EPISODE_AGENT_RETURN_MEAN,
-    EPISODE_LEN_MEAN,
-    EPISODE_MODULE_RETURN_MEAN,
-    EPISODE_RETURN_MAX,
     EPISODE_RETURN_MEAN,
-    EPISODE_RETURN_MIN,
     EVALUATION_RESULTS,
     LEARNER_RESULTS,
-    NUM_ENV_STEPS_SAMPLED,
     NUM_ENV_STEPS_SAMPLED_LIFETIME,
     NUM_EPISODES,
     NUM_EPISODES_LIFETIME,
@@ -53,13 +48,12 @@ from formation.policy import CHECKPOINT_CONFIG
 from formation.recipe.config import STOCK_TRAIN, RunConfig, TrainSettings
 from formation.recipe.learn import loss_weights
 from formation.recipe.replay import FrameReplay
-from formation.recipe.rollout import STARTS
 from formation.recipe.stopwatch import Stopwatch, add_seconds
 from formation.recipe.team import answers_leader, module_of_agent, network_specs, replay_frame_shape, spaces_of
 from formation.rllib.learner import FormationLearner
 from formation.rllib.module import DuelingQModule
 from formation.rllib.replay_actor import ReplayActor
-from formation.rllib.rollout_actor import RolloutActor
+from formation.rllib.rollout_actor import RolloutActor, no_episodes_yet
 
 
 def policy_mapping_fn(agent_id, episode=None, **kwargs) -> str:
@@ -116,7 +110,7 @@ NOT_HONOURED: dict[str, str] = {
     "env_config": "the game is the run config's game section",
     "evaluation_interval": "greedy evaluation runs every eval.every_env_steps env steps on eval.episodes games, "
                            "reported under result['evaluation']",
-    "evaluation_num_env_runners": "greedy evaluation runs in a Ray task of its own beside training (eval.episodes)",
+    "evaluation_num_env_runners": "greedy evaluation runs in a Ray actor of its own beside training (eval.episodes)",
     "torch_compile_learner": "its learner runs torch eagerly",
     "optimizer": "its learner's Adam takes train.lr and clips to train.grad_clip",
     "_env_to_module_connector": "its rollout actors read the games' observations themselves, not through connectors",
@@ -419,14 +413,21 @@ def play_team(run: RunConfig, modules: dict, episodes: int, seed: int, record: i
     return play_greedy(run.game, team.act_batch, episodes, seed, record=record)
 
 
-@ray.remote(num_cpus=0)  # short and periodic: it shares the cores rather than waiting for one of its own
-def greedy_evaluation(run: dict, weights: dict, episodes: int, seed: int) -> dict:
-    """The periodic greedy evaluation's summary, in a Ray task beside training."""
-    import torch
+# short and periodic: it shares the cores rather than waiting for one of its own; restarted if it dies (the
+# evaluation it played is then lost, and the next one is due at once)
+@ray.remote(num_cpus=0, max_restarts=-1)
+class EvaluationActor:
+    """The periodic greedy evaluation, in a process of its own beside training, started with the run so that an
+    evaluation never waits for a process to start."""
 
-    torch.set_num_threads(1)
-    run = RunConfig.from_saved(run)
-    return play_team(run, modules_of(run, weights), episodes, seed)["summary"]
+    def __init__(self, run: dict):
+        import torch
+
+        torch.set_num_threads(1)
+        self.run = RunConfig.from_saved(run)
+
+    def evaluate(self, weights: dict, episodes: int, seed: int) -> dict:
+        return play_team(self.run, modules_of(self.run, weights), episodes, seed)["summary"]
 
 
 class GreedyEvaluationMixin:
@@ -438,16 +439,15 @@ class GreedyEvaluationMixin:
         return self.play_greedy(episodes, seed)["summary"]
 
     def _evaluate_now(self) -> None:
-        """Start the periodic greedy evaluation (``eval.every_env_steps``) on the weights of now, in a Ray task of its
-        own (``greedy_evaluation``), after RLlib's ``on_evaluate_start`` callbacks; training goes on meanwhile.
+        """Start the periodic greedy evaluation (``eval.every_env_steps``) on the weights of now, in an actor of its
+        own (``EvaluationActor``), after RLlib's ``on_evaluate_start`` callbacks; training goes on meanwhile.
         ``_collect_evaluation`` takes its summary in."""
         make_callback("on_evaluate_start", callbacks_objects=self.callbacks,
                       callbacks_functions=self.config.callbacks_on_evaluate_start,
                       kwargs=dict(algorithm=self, metrics_logger=self.metrics))
-        weights = ray.put(self._inference_weights())
         self._evaluation = (self.counters["env_steps"],
-                            greedy_evaluation.remote(self.run.to_dict(), weights, self.run.eval.episodes,
-                                                     self.run.eval.seed))
+                            self._evaluator.evaluate.remote(self._inference_weights(), self.run.eval.episodes,
+                                                            self.run.eval.seed))
 
     def _evaluation_due(self) -> bool:
         """Whether to start the next evaluation: its env steps reached, and the last one back."""
@@ -462,11 +462,18 @@ class GreedyEvaluationMixin:
         if not ray.wait([ref], timeout=0)[0]:
             return
         self._evaluation = None
-        self.last_eval = {**ray.get(ref), "env_steps": env_steps}
+        try:
+            self.last_eval = {**ray.get(ref), "env_steps": env_steps}
+        except ray.exceptions.RayActorError:  # it died playing: Ray restarts it for the next one
+            return
         make_callback("on_evaluate_end", callbacks_objects=self.callbacks,
                       callbacks_functions=self.config.callbacks_on_evaluate_end,
                       kwargs=dict(algorithm=self, metrics_logger=self.metrics,
                                   evaluation_metrics=evaluation_results(self.last_eval, self.run)))
+
+    def cleanup(self) -> None:
+        super().cleanup()
+        ray.kill(self._evaluator)
 
     def _evaluate_when_due(self) -> None:
         self._collect_evaluation()
@@ -557,7 +564,8 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         self.replays = [ReplayActor.options(**shard["options"]).remote(*shard["args"], seed=run.train.seed + i,
                                                                        prioritized=run.train.prioritized)
                         for i in range(run.resources.num_replay_shards)]
-        # driver_bytes: pickled size of all that rollout actors and the learner returned to the driver
+        # driver_bytes: pickled size of all that rollout actors and the learner returned to the driver (each
+        # measures its own answers, off the driver)
         # updates_skipped: what the replay ratio owed while a restarted replay refilled (never run)
         # samples_lost: sample requests that died with their rollout actor (each up to steps_per_sample x
         # games_per_actor env steps, never counted in env_steps)
@@ -566,7 +574,9 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
                          "rollout_actor_restarts": 0, "replay_restarts": 0, "samples_lost": 0}
         self._samples = {"sent": 0, "answered": 0}  # sample requests of this process's life
         self.last_eval: dict = {}
-        self._evaluation = None  # (env steps of its weights, its task) while one plays
+        self._no_episodes_yet = no_episodes_yet(run, self.config.metrics_num_episodes_for_smoothing)
+        self._evaluation = None  # (env steps of its weights, its answer) while one plays
+        self._evaluator = EvaluationActor.remote(run.to_dict())  # ready before the first evaluation is due
         self._replay_ready = False
         self._incarnations: dict[int, str] = {}  # of each replay shard, as the learner last saw it
         self._started = time.perf_counter()
@@ -633,16 +643,20 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         self._count_lost_samples()
         for _, result in ready:
             c["env_steps"] += result["env_steps"]
-            c["driver_bytes"] += len(pickle.dumps(result))
+            c["episodes"] += result["episodes"]
+            c["driver_bytes"] += result["bytes"]
             add_seconds(account["rollout"], result.get("seconds", {}))
-            self._log_episodes(result["episodes"], result["env_steps"])
+        # the actors' episode metrics, reduced in each actor: merged as RLlib merges its EnvRunners'; before the
+        # first episode ends, RLlib's env_runners keys all the same (counts of 0, means NaN)
+        records = [result["metrics"] for _, result in ready]
+        self.metrics.aggregate(records if c["episodes"] else [*records, self._no_episodes_yet])
         owed = t.replay_ratio * c["env_steps"] - c["updates"] - c["updates_skipped"]
         if learning and owed >= 1:
             n, need = int(min(owed, updates_per_call)), self._min_records()
             with clock("learner"):  # waiting for the learner's updates
                 results = learner_values(self.learner_group.foreach_learner(
                     lambda learner, n=n, need=need: learner.pull_and_update(n, need)))
-            c["driver_bytes"] += len(pickle.dumps(results))
+            c["driver_bytes"] += sum(r["bytes"] for r in results)
             self.metrics.aggregate([r["metrics"] for r in results], key=LEARNER_RESULTS)
             c["updates"] += n  # every learner ran n updates of the same weights, on its own shards' batches
             for r in results:
@@ -696,34 +710,6 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
                 self.counters["replay_restarts"] += 1
             self._incarnations[index] = incarnation
 
-    def _log_episodes(self, episodes: list[dict], env_steps: int) -> None:
-        """The rollout actors' finished episodes: RLlib's standard ``env_runners`` keys (an episode's return is its
-        agents' summed, as RLlib's multi-agent episodes count it) and the recipe's ``explore`` rates."""
-        m, window = self.metrics, self.config.metrics_num_episodes_for_smoothing
-        # Ray 2.60's windowed means are emptied at each iteration's reduce: every mean below is over the episodes
-        # that ended in this iteration (NaN in one that ended none); the windows only cap how many count
-        agents, modules = self.run.game.agent_names, module_of_agent(self.run)
-        m.log_value((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED), env_steps, reduce="sum")
-        m.log_value((ENV_RUNNER_RESULTS, NUM_EPISODES), len(episodes), reduce="sum")
-        for e in episodes:
-            self.counters["episodes"] += 1
-            team = float(sum(e["returns"]))
-            m.log_value((ENV_RUNNER_RESULTS, EPISODE_RETURN_MEAN), team, window=window)
-            m.log_value((ENV_RUNNER_RESULTS, EPISODE_RETURN_MAX), team, reduce="max", window=window)
-            m.log_value((ENV_RUNNER_RESULTS, EPISODE_RETURN_MIN), team, reduce="min", window=window)
-            m.log_value((ENV_RUNNER_RESULTS, EPISODE_LEN_MEAN), e["steps"], window=window)
-            for module in set(modules):
-                value = sum(r for r, owner in zip(e["returns"], modules) if owner == module)
-                m.log_value((ENV_RUNNER_RESULTS, EPISODE_MODULE_RETURN_MEAN, module), value, window=window)
-            for name, value in zip(agents, e["returns"]):
-                m.log_value((ENV_RUNNER_RESULTS, EPISODE_AGENT_RETURN_MEAN, name), value, window=window)
-                m.log_value(("explore", f"return_{name}"), value, window=500)
-            for key in ("success", "reached", "collided", "broken", "truncated"):
-                m.log_value(("explore", key), float(e[key]), window=500)
-            m.log_value(("explore", "episode_steps"), e["steps"], window=500)
-            for start in STARTS[1:]:  # the share of training episodes that started elsewhere than the spec's places
-                m.log_value(("explore", f"start_{start}"), float(e["start"] == start), window=500)
-
     def _log_counters(self) -> None:
         c = self.counters
         elapsed = time.perf_counter() - self._started
@@ -733,12 +719,6 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         m.log_value("episodes", c["episodes"], window=1)
         m.log_value(NUM_ENV_STEPS_SAMPLED_LIFETIME, c["env_steps"], window=1)
         m.log_value("session_seconds", elapsed, window=1)
-        # RLlib's env_runners keys from the first iteration: counts of 0, means NaN before the first episode ends
-        m.log_value((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED), 0, reduce="sum")
-        m.log_value((ENV_RUNNER_RESULTS, NUM_EPISODES), 0, reduce="sum")
-        if c["episodes"] == 0:
-            for key in (EPISODE_RETURN_MEAN, EPISODE_LEN_MEAN):
-                m.log_value((ENV_RUNNER_RESULTS, key), math.nan, window=self.config.metrics_num_episodes_for_smoothing)
         self._log_lifetime()
         self._log_evaluation()
 
@@ -761,7 +741,7 @@ class StockFormationDQN(GreedyEvaluationMixin, DQN):
         self.counters = {"env_steps": 0, "updates": 0, "episodes": 0, "driver_bytes": 0,
                          "next_eval_at": self.run.eval.every_env_steps}
         self.last_eval: dict = {}
-        self._evaluation = None
+        self._evaluation, self._evaluator = None, EvaluationActor.remote(self.run.to_dict())
         self._started = time.perf_counter()
         update = self.learner_group.update
 

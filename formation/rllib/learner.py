@@ -28,7 +28,7 @@ from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
 from formation.recipe.learn import sample_priorities
 from formation.recipe.loss import ACTIONS, NEXT_OBS, OBS, dqn_loss, module_batches
-from formation.recipe.stopwatch import Stopwatch
+from formation.recipe.stopwatch import Stopwatch, with_size
 from formation.rllib.module import PREPARED_NEXT_OBS, PREPARED_OBS, SAFETY_LOGITS
 
 # the recipe's batches use RLlib's column names
@@ -168,8 +168,8 @@ class FormationLearner(DQNTorchLearner):
                 self._replays[index].update_priorities.remote(sample["ids"], priority, incarnation)
         with clock("batch"):
             metrics = self.metrics.reduce()
-        return {"metrics": metrics, "updates": num_updates, "refilling": refilling, "incarnations": seen,
-                "seconds": clock.pop()}
+        return with_size({"metrics": metrics, "updates": num_updates, "refilling": refilling, "incarnations": seen,
+                          "seconds": clock.pop()})
 
     def _wait_for_batch(self, min_records: int) -> tuple[int, dict, str]:
         """A batch from a shard that restarted before this learner's first update: wait for its refill."""

@@ -2,12 +2,13 @@
 
 Each ``sample()`` has the collector play ``steps_per_sample`` steps of all its games with the weights it was last
 sent (``formation.recipe.collect``), pushes the records straight to its replay shard and returns only counts and
-finished-episode statistics, never transitions. The actor holds no recipe of its own: it moves weights in and
-records out.
+its finished episodes' metrics, reduced in the actor as RLlib's EnvRunners reduce theirs, never transitions. The
+actor holds no recipe of its own: it moves weights in and records out.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import gymnasium as gym
@@ -17,10 +18,23 @@ from ray.rllib.core import COMPONENT_RL_MODULE
 from ray.rllib.env import INPUT_ENV_SINGLE_SPACES, INPUT_ENV_SPACES
 from ray.rllib.env.env_runner import EnvRunner
 from ray.rllib.utils.checkpoints import Checkpointable
-from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME, WEIGHTS_SEQ_NO
+from ray.rllib.utils.metrics import (
+    ENV_RUNNER_RESULTS,
+    EPISODE_AGENT_RETURN_MEAN,
+    EPISODE_LEN_MEAN,
+    EPISODE_MODULE_RETURN_MEAN,
+    EPISODE_RETURN_MAX,
+    EPISODE_RETURN_MEAN,
+    EPISODE_RETURN_MIN,
+    NUM_ENV_STEPS_SAMPLED,
+    NUM_ENV_STEPS_SAMPLED_LIFETIME,
+    NUM_EPISODES,
+    WEIGHTS_SEQ_NO,
+)
 
 from formation.recipe.collect import Collector
-from formation.recipe.stopwatch import Stopwatch, add_seconds
+from formation.recipe.rollout import STARTS
+from formation.recipe.stopwatch import Stopwatch, add_seconds, with_size
 from formation.recipe.team import module_of_agent, spaces_of
 
 ADDS_IN_FLIGHT = 2  # pushes a rollout actor may have unacknowledged before it waits for its replay shard
@@ -74,8 +88,10 @@ class RolloutActor(EnvRunner, Checkpointable):
                 _, self._adds = ray.wait(self._adds, num_returns=len(self._adds) - ADDS_IN_FLIGHT)
         steps = self.rollout.batch_size * self.run.train.steps_per_sample
         self.num_env_steps_sampled_lifetime += steps
-        return {"env_steps": steps, "episodes": episodes, "worker": getattr(self, "worker_index", 0),
-                "seconds": add_seconds(self.collector.clock.pop(), self.clock.pop())}
+        log_episodes(self.metrics, episodes, steps, self.run, self.config.metrics_num_episodes_for_smoothing)
+        return with_size({"env_steps": steps, "episodes": len(episodes), "metrics": self.metrics.reduce(),
+                          "worker": getattr(self, "worker_index", 0),
+                          "seconds": add_seconds(self.collector.clock.pop(), self.clock.pop())})
 
     # -- state
     def get_state(self, components=None, *, not_components=None, **kwargs) -> dict:
@@ -111,3 +127,46 @@ class RolloutActor(EnvRunner, Checkpointable):
 
     def stop(self) -> None:
         pass
+
+
+def no_episodes_yet(run, window: int) -> dict:
+    """A rollout actor's reduced metrics before any sample: counts of 0, means NaN (which RLlib's means pass over),
+    so that RLlib's ``env_runners`` keys are in every result from the first on (Tune's metric checks need them)."""
+    from ray.rllib.utils.metrics.metrics_logger import MetricsLogger
+
+    metrics = MetricsLogger()
+    log_episodes(metrics, [], 0, run, window)
+    return metrics.reduce()
+
+
+def log_episodes(m, episodes: list[dict], env_steps: int, run, window: int) -> None:
+    """A sample's finished episodes into the rollout actor's ``MetricsLogger`` ``m``, as RLlib's EnvRunners log
+    theirs: its standard ``env_runners`` keys (an episode's return is its agents' summed, as RLlib's multi-agent
+    episodes count it) and the recipe's ``explore`` rates. Reduced in the actor and merged by the driver
+    (``MetricsLogger.aggregate``): the driver handles one small record per sample instead of a dozen values per
+    episode."""
+    # Ray 2.60's windowed means are emptied at each iteration's reduce: every mean below is over the episodes
+    # that ended in this iteration (NaN in one that ended none); the windows only cap how many count
+    agents, modules = run.game.agent_names, module_of_agent(run)
+    m.log_value((ENV_RUNNER_RESULTS, NUM_ENV_STEPS_SAMPLED), env_steps, reduce="sum")
+    m.log_value((ENV_RUNNER_RESULTS, NUM_EPISODES), len(episodes), reduce="sum")
+    if not episodes and not env_steps:  # no_episodes_yet: the means' keys, NaN (RLlib's means pass over NaN)
+        for key in (EPISODE_RETURN_MEAN, EPISODE_LEN_MEAN):
+            m.log_value((ENV_RUNNER_RESULTS, key), math.nan, window=window)
+    for e in episodes:
+        team = float(sum(e["returns"]))
+        m.log_value((ENV_RUNNER_RESULTS, EPISODE_RETURN_MEAN), team, window=window)
+        m.log_value((ENV_RUNNER_RESULTS, EPISODE_RETURN_MAX), team, reduce="max", window=window)
+        m.log_value((ENV_RUNNER_RESULTS, EPISODE_RETURN_MIN), team, reduce="min", window=window)
+        m.log_value((ENV_RUNNER_RESULTS, EPISODE_LEN_MEAN), e["steps"], window=window)
+        for module in set(modules):
+            value = sum(r for r, owner in zip(e["returns"], modules) if owner == module)
+            m.log_value((ENV_RUNNER_RESULTS, EPISODE_MODULE_RETURN_MEAN, module), value, window=window)
+        for name, value in zip(agents, e["returns"]):
+            m.log_value((ENV_RUNNER_RESULTS, EPISODE_AGENT_RETURN_MEAN, name), value, window=window)
+            m.log_value(("explore", f"return_{name}"), value, window=500)
+        for key in ("success", "reached", "collided", "broken", "truncated"):
+            m.log_value(("explore", key), float(e[key]), window=500)
+        m.log_value(("explore", "episode_steps"), e["steps"], window=500)
+        for start in STARTS[1:]:  # the share of training episodes that started elsewhere than the spec's places
+            m.log_value(("explore", f"start_{start}"), float(e["start"] == start), window=500)
