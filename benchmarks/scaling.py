@@ -1,5 +1,5 @@
 """Capacity of each stage of the actor-replay-learner path alone, and the driver's cost as rollout actors are added:
-the figures docs/SCALING.md's model reads (``experiments/results_tables.py --scaling`` prints its tables).
+the figures docs/SCALING.md's model reads (``experiments/scaling_model.py`` prints its tables).
 
     .venv/bin/python benchmarks/scaling.py [--seconds 10] [--actors 1,2,4,8] [--json docs/results/scaling.json]
 

@@ -10,12 +10,14 @@ learner slows sampling instead of falling behind):
 - learners: updates/s / replay_ratio, where one of k data-parallel learners updates on batch/k records (its time
   fitted as fixed + per-record from the two batches measured) and then all-reduces its gradients (a ring:
   2 (k-1)/k x the weights' bytes over the network);
-- the driver: 1,000 / its largest CPU seconds per 1,000 env steps (one core);
+- the driver: 1,000 / its largest CPU seconds per 1,000 env steps (one core: its cost per env step, measured flat
+  over 1-8 actors, held at its worst);
 - the network: the learner node takes in replay_ratio x batch sampled records per env step; every node pulls the
   weights every weights_every_updates updates.
-ASSUMED (not measured): nodes of 16 cores with a 10 Gb/s network (1.25 GB/s each way), 15 rollout actors per node
-(a core for the node's other processes); a GPU node has one GPU, its learner's update time is the one measured on
-the GPU named in the results file."""
+ASSUMED (not measured): CPU nodes of 16 cores with a 10 Gb/s network (1.25 GB/s each way), 15 of the cores for
+rollout actors, replay shards and CPU learners, one each (a core for the node's other processes); a GPU node has one
+GPU and holds one learner and nothing else (cluster/ gives Ray none of its CPUs), its update time the one measured
+on the GPU named in the results file."""
 
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ import math
 from _common import RESULTS, parser
 
 NETWORK = 1.25e9  # bytes/s each way per node: 10 Gb/s, assumed
-ACTORS_PER_NODE = 15
+CORES_PER_NODE = 15
 SCALES = (1, 4, 16, 64, 256)
 LEARNERS = (1, 2, 4, 8, 16, 32, 64, 128)
 
@@ -45,12 +47,7 @@ class Model:
         self.cpu_update = lambda b: max(half - per_record * self.batch / 2, 0.0) + per_record * b
         gpu = sorted((int(b), ms / 1000) for b, ms in figures["learner_gpu"]["ms_per_update"].items())
         self.gpu_update = lambda b: interpolate(gpu, b)
-        # the driver's CPU seconds per second = fixed (its iterations) + per env step x env steps/s, fitted
-        # over the measured rates; it saturates one core
-        points = [(d["env_steps_per_s"], d["cpu_s_per_1000_env_steps"] / 1000 * d["env_steps_per_s"])
-                  for d in figures["driver"]]
-        per_step, fixed = fit(points)
-        self.driver = (1 - fixed) / per_step
+        self.driver = 1000 / max(d["cpu_s_per_1000_env_steps"] for d in figures["driver"])
 
     def caps(self, actors: int, shards: int, learners: int, batch: int, gpu: bool) -> dict[str, float]:
         """Env steps/s each stage allows at ``batch`` records per update (replay_ratio keeps the recipe's samples
@@ -58,7 +55,7 @@ class Model:
         ratio = self.samples / batch
         update = (self.gpu_update if gpu else self.cpu_update)(batch / learners)
         allreduce = 2 * (learners - 1) / learners * self.weights / NETWORK
-        nodes = math.ceil(actors / ACTORS_PER_NODE)
+        nodes = sum(nodes_for(actors, shards, learners, gpu))
         return {"rollout actors": actors * self.actor,
                 "replay shards": shards / (self.shard_seconds + self.samples * self.record_seconds),
                 "learners": 1 / (update + allreduce) / ratio,
@@ -81,15 +78,10 @@ class Model:
                 "bottleneck": min(caps, key=caps.get)}
 
 
-def fit(points: list[tuple[float, float]]) -> tuple[float, float]:
-    """Least squares y = slope x + intercept; a slope of 0 or less (noise) falls back to the worst mean."""
-    n = len(points)
-    mx, my = sum(x for x, _ in points) / n, sum(y for _, y in points) / n
-    sxx = sum((x - mx) ** 2 for x, _ in points)
-    slope = sum((x - mx) * (y - my) for x, y in points) / sxx if sxx else 0.0
-    if slope <= 0:
-        return max(y / x for x, y in points), 0.0
-    return slope, max(my - slope * mx, 0.0)
+def nodes_for(actors: int, shards: int, learners: int, gpu: bool) -> tuple[int, int]:
+    """CPU nodes and GPU nodes that hold the actors, shards and learners."""
+    cores = actors + shards + (0 if gpu else learners)
+    return math.ceil(cores / CORES_PER_NODE), learners if gpu else 0
 
 
 def interpolate(points: list[tuple[int, float]], x: float) -> float:
@@ -134,27 +126,40 @@ def driver(figures: dict) -> list[str]:
 
 
 def table(model: Model, gpu: bool, grow: bool) -> list[str]:
-    rows = ["| rollout actors | CPU nodes | busy actors | learners | replay shards | batch | replay ratio | "
+    rows = ["| rollout actors | nodes (CPU + GPU) | busy actors | learners | replay shards | batch | replay ratio | "
             "env steps/s | first bottleneck |", "|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for n in SCALES:
         r = model.best(n, gpu, None if grow else model.batch)
-        rows.append(f"| {n} | {math.ceil(n / ACTORS_PER_NODE)} | {min(n, math.ceil(r['rate'] / model.actor))} | "
+        cpu, gpus = nodes_for(n, r["shards"], r["learners"], gpu)
+        rows.append(f"| {n} | {cpu} + {gpus} | {min(n, math.ceil(r['rate'] / model.actor))} | "
                     f"{r['learners']} | {r['shards']} | {r['batch']} | 1/{r['batch'] / model.samples:g} | "
                     f"{r['rate']:,.0f} | {r['bottleneck']} |")
     return rows
 
 
 def configs(model: Model) -> list[str]:
-    """The resources to ask for on 10 and 100 nodes (GPU learners, the batch grown with them)."""
+    """The resources to ask for on 10 and 100 nodes: g GPU nodes of one learner each, the rest CPU nodes with the
+    rollout actors and replay shards, the batch grown with the learners; the fewest GPU nodes within 2% of the
+    best rate."""
     out = []
     for nodes in (10, 100):
-        r = model.best(nodes * ACTORS_PER_NODE, gpu=True)
-        busy = math.ceil(r["rate"] / model.actor)
-        out += [f"On {nodes} nodes: {r['rate']:,.0f} env steps/s, bound by the {r['bottleneck']}; "
-                f"{busy} rollout actors keep it fed.", "", "```yaml",
-                "resources:", f"  num_rollout_actors: {max(busy, r['shards'])}", f"  num_learners: {r['learners']}",
-                "  num_gpus_per_learner: 1", f"  num_replay_shards: {r['shards']}", "train:",
-                f"  batch_size: {r['batch']}", f"  replay_ratio: {model.samples / r['batch']:.6g}", "```", ""]
+        options = []
+        for g in range(1, nodes):
+            room = CORES_PER_NODE * (nodes - g)  # cores of the CPU nodes for actors and shards
+            for s in (s for s in (g, 2 * g) if 2 * s <= room):
+                caps = model.caps(room - s, s, g, model.batch * g, gpu=True)
+                options.append((min(caps.values()), g, s, caps))
+        best = max(o[0] for o in options)
+        rate, g, s, caps = min((o for o in options if o[0] >= 0.98 * best), key=lambda o: (o[1], o[2]))
+        actors = max(math.ceil(rate / model.actor), s)
+        cpu, _ = nodes_for(actors, s, g, gpu=True)
+        out += [f"On {nodes} nodes: {g} GPU nodes of one learner each and {cpu} CPU node(s) of {actors} rollout "
+                f"actors and {s} replay shards, {rate:,.0f} env steps/s, bound by the {min(caps, key=caps.get)}"
+                + ("" if cpu + g == nodes else f"; the other {nodes - cpu - g} nodes would add nothing") + ".",
+                "", "```yaml", "resources:", f"  num_rollout_actors: {actors}", f"  num_learners: {g}",
+                "  num_gpus_per_learner: 1", f"  num_replay_shards: {s}", "train:",
+                f"  batch_size: {model.batch * g}", f"  replay_ratio: {model.samples / (model.batch * g):.6g}",
+                "```", ""]
     return out
 
 
