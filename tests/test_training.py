@@ -261,6 +261,7 @@ def test_data_parallel_learners_each_pull_from_their_own_shards_and_hold_equal_w
     """resources.num_learners: 2 runs RLlib's LearnerGroup with torch DDP (gloo on a CPU): each learner pulls half of
     train.batch_size from its own replay shard, the same number of updates per call, and after every update both
     hold the same weights (their target networks too), which differ from the weights they started from."""
+    import ray
     import torch
 
     from formation.rllib.algorithm import build_algorithm_config
@@ -288,8 +289,14 @@ def test_data_parallel_learners_each_pull_from_their_own_shards_and_hold_equal_w
         after = algo.local_modules()
         for m, params in before.items():
             assert any(not torch.equal(p, q) for p, q in zip(params, after[m].parameters())), m
+        # the learners sit in the placement group reserved before the rollout actors were placed (rollout actors
+        # of a quarter CPU placed first could leave no node a whole CPU for a learner)
+        placed = [r.get() for r in algo.learner_group.foreach_learner(
+            lambda learner: ray.util.get_current_placement_group().id.hex())]
+        assert placed == [algo._learners_placement.id.hex()] * 2
     finally:
         algo.stop()
+    assert ray.util.placement_group_table(algo._learners_placement)["state"] == "REMOVED"  # given back
 
 
 def test_learners_need_shards_of_their_own_and_a_batch_that_splits():

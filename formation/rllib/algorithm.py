@@ -226,6 +226,12 @@ class FormationDQNConfig(RunConfigFields, DQNConfig):
             _check_callbacks(key, value)
         super().__setattr__(key, value)
 
+    def build_learner_group(self, *, placement_group=None, **kwargs):
+        # the learners take the placement group FormationDQN.setup reserved for them (RLlib's own way of handing
+        # a LearnerGroup its resources, as a Tune trial does)
+        return super().build_learner_group(
+            placement_group=placement_group or self.__dict__.get("_learners_placement"), **kwargs)
+
     def training(self, *, replay_buffer_config=NotProvided, **kwargs):
         # DQNConfig merges a replay_buffer_config into its own in place: compare before it does
         if replay_buffer_config is not NotProvided and "_formation_run" in self.__dict__ and any(
@@ -386,6 +392,24 @@ def missing_resources(run: RunConfig, have: dict[str, float]) -> str | None:
     return None
 
 
+def reserve_learners(run: RunConfig, timeout_s: float = 60.0):
+    """A placement group of the learners' bundles, ready before any rollout actor is placed: rollout actors of a
+    fraction of a CPU, placed first, can leave every node short of the whole CPU a learner asks for (the run
+    would wait for ever). None inside a placement group already (a Tune trial's holds the learners)."""
+    from ray.util.placement_group import get_current_placement_group, placement_group, remove_placement_group
+
+    if get_current_placement_group() is not None or run.resources.num_learners == 0:
+        return None
+    bundles = resource_bundles(run)[run.resources.num_rollout_actors:]
+    reserved = placement_group(bundles, strategy="PACK")
+    ready, _ = ray.wait([reserved.ready()], timeout=timeout_s)
+    if not ready:
+        remove_placement_group(reserved)
+        raise RunFailed(f"resources.num_learners: {run.resources.num_learners} learner(s) of {bundles[0]} each "
+                        f"could not be placed in {timeout_s:g} s; free: {ray.available_resources()}")
+    return reserved
+
+
 def replay_shard(run: RunConfig) -> dict:
     """One replay shard's arguments (capacity, frame shape, agents, frame stack) and Ray options: it asks for
     the memory its arrays take, so that Ray places it on a node that can hold it, and the shards spread over
@@ -474,6 +498,8 @@ class GreedyEvaluationMixin:
     def cleanup(self) -> None:
         super().cleanup()
         ray.kill(self._evaluator)
+        if getattr(self, "_learners_placement", None) is not None:
+            ray.util.remove_placement_group(self._learners_placement)
 
     def _evaluate_when_due(self) -> None:
         self._collect_evaluation()
@@ -558,6 +584,9 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         return super().from_checkpoint(path, filesystem, **kwargs)
 
     def setup(self, config: FormationDQNConfig) -> None:
+        self._learners_placement = reserve_learners(config.run)
+        # the config is frozen by now: its __dict__ is the one place RLlib's setup passes on to build_learner_group
+        self.config.__dict__["_learners_placement"] = self._learners_placement
         super().setup(config)
         run = self.run = config.run
         shard = replay_shard(run)
