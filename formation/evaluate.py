@@ -14,6 +14,7 @@ import numpy as np
 
 from formation.config import GameConfig
 from formation.game import BatchedGame, Observer, ScreenRenderer
+from formation.planner import EXACT_FOLLOWERS
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -91,17 +92,21 @@ def play_greedy(config: GameConfig, act: Callable[[np.ndarray], np.ndarray], epi
 
 # ---------------------------------------------------------------------- the planner as reference
 def _plan_chunk(config_values: dict, scenarios: list) -> list:
-    """Shortest paths of some scenarios (a worker process's share)."""
-    from formation.planner import shortest_path
+    """Shortest paths of some scenarios (a worker process's share); for a team too large to search exactly,
+    a lower bound on their steps instead (``formation.planner.steps_bound``)."""
+    from formation.planner import shortest_path, steps_bound
 
     config = GameConfig.from_dict(config_values)
+    if config.n_followers > EXACT_FOLLOWERS:
+        return [steps_bound(s, config) for s in scenarios]
     return [shortest_path(s, config=config) for s in scenarios]
 
 
 def planner_paths(config: GameConfig, scenarios: list, workers: int = 1,
                   progress: Callable[[int, int], None] | None = None) -> list:
     """The planner's shortest path of every scenario (a list of joint actions, or None), across
-    ``workers`` processes; ``progress(done, total)`` after each chunk."""
+    ``workers`` processes; ``progress(done, total)`` after each chunk. For a team of more than
+    ``formation.planner.EXACT_FOLLOWERS`` followers, a lower bound on each path's steps (or None) instead."""
     n = len(scenarios)
     workers = max(1, min(workers, n))
     chunk = max(1, min(16, math.ceil(n / workers)))
@@ -132,14 +137,21 @@ def planner_reference(config: GameConfig, scenarios: list, workers: int = 1,
     """What the clairvoyant planner achieves on ``scenarios``: its shortest path is played through the
     game (``play_greedy`` on the same scenarios). Per scenario: ``solved`` (the planner has a path),
     ``steps`` (its length; -1 where unsolved), ``returns`` (n, 1+k) of playing it (the best return),
-    ``success`` (the replay succeeded: True wherever solved), and ``paths``."""
+    ``success`` (the replay succeeded: True wherever solved), ``paths`` and ``exact`` (True). For a team too
+    large to search exactly, ``exact`` is False: ``steps`` is a lower bound (``formation.planner.steps_bound``),
+    ``solved`` says where no follower alone with the leader is proven stuck, and there is no path to replay
+    (``returns`` and ``paths`` None)."""
     paths = planner_paths(config, scenarios, workers, progress)
     n = len(scenarios)
+    if config.n_followers > EXACT_FOLLOWERS:
+        steps = np.array([-1 if b is None else b for b in paths], np.int64)
+        return {"solved": steps >= 0, "steps": steps, "returns": None, "success": steps >= 0,
+                "replayed_steps": steps, "paths": None, "exact": False}
     solved = np.array([p is not None for p in paths], bool)
     steps = np.array([len(p) if p is not None else -1 for p in paths], np.int64)
     played = play_greedy(config, replay_paths(paths, 1 + config.n_followers), n, 0, scenarios=scenarios)
     return {"solved": solved, "steps": steps, "returns": played["returns"], "success": played["success"],
-            "replayed_steps": played["steps"], "paths": paths}
+            "replayed_steps": played["steps"], "paths": paths, "exact": True}
 
 
 def replay_paths(paths: list, n_agents: int) -> Callable[[np.ndarray], np.ndarray]:
@@ -166,13 +178,19 @@ def compare_with_planner(played: dict, reference: dict, agent_names: list[str]) 
 
     ``optimality_gap_mean``: the policy's steps minus the planner's, over the policy's successes;
     ``return_ratio``: the paper's measure, mean return over mean best return (the planner path's), per
-    agent and for the team (sum over agents), over the scenarios the planner solves."""
+    agent and for the team (sum over agents), over the scenarios the planner solves. ``planner_exact``: False
+    where the planner's steps are a lower bound (a large team, ``planner_reference``): the gap is then an upper
+    bound, and there are no best returns (None)."""
     success = np.asarray(played["success"], bool)
     solved = np.asarray(reference["solved"], bool)
     both = success & solved
     steps, best = np.asarray(played["steps"]), np.asarray(reference["steps"])
     gap = (steps[both] - best[both]).astype(float)
-    returns, best_returns = np.asarray(played["returns"])[solved], np.asarray(reference["returns"])[solved]
+    exact = reference.get("exact", True)
+    if not exact:  # no path to replay, so no best return: every ratio None
+        returns = best_returns = np.zeros((0, len(agent_names)))
+    else:
+        returns, best_returns = np.asarray(played["returns"])[solved], np.asarray(reference["returns"])[solved]
 
     def ratio(mine: np.ndarray, theirs: np.ndarray) -> float | None:
         denominator = float(theirs.mean()) if theirs.size else 0.0
@@ -180,12 +198,13 @@ def compare_with_planner(played: dict, reference: dict, agent_names: list[str]) 
 
     ratios = {name: ratio(returns[:, i], best_returns[:, i]) for i, name in enumerate(agent_names)}
     ratios["team"] = ratio(returns.sum(axis=1), best_returns.sum(axis=1))
-    return {"planner_solved": int(solved.sum()), "planner_steps_mean": float(best[solved].mean()) if solved.any()
+    return {"planner_exact": exact, "planner_solved": int(solved.sum()),
+            "planner_steps_mean": float(best[solved].mean()) if solved.any()
             else None,
             "planner_steps_on_successes_mean": float(best[both].mean()) if both.any() else None,
             "optimality_gap_mean": float(gap.mean()) if gap.size else None,
             "optimality_gap_max": int(gap.max()) if gap.size else None,
-            "best_return_mean": {name: float(best_returns[:, i].mean()) if solved.any() else None
+            "best_return_mean": {name: float(best_returns[:, i].mean()) if len(best_returns) else None
                                  for i, name in enumerate(agent_names)},
             "return_ratio": ratios}
 
@@ -225,6 +244,13 @@ def format_report(report: dict) -> str:
             ("optimality gap", f"{num(p['optimality_gap_mean'])} steps mean, {p['optimality_gap_max']} max"),
             ("planner", f"solves {p['planner_solved']}/{report['episodes']}, "
                         f"{num(p['planner_steps_mean'])} steps mean")]
+    if not p.get("planner_exact", True):
+        rows[-3:] = [("steps of successes", f"{num(report['steps_success_mean'])} (the planner's, at least: "
+                                            f"{num(p['planner_steps_on_successes_mean'])})"),
+                     ("optimality gap", f"at most {num(p['optimality_gap_mean'])} steps mean"),
+                     ("planner", f"a lower bound for {len(report['return_mean']) - 1} followers (each follower "
+                                 f"alone with the leader); none proven stuck in {p['planner_solved']}/"
+                                 f"{report['episodes']}, {num(p['planner_steps_mean'])} steps mean")]
     for name, value in report["return_mean"].items():
         rows.append((f"return {name}", f"{num(value)} (best {num(p['best_return_mean'][name])}, "
                                        f"ratio {num(p['return_ratio'][name], 3)})"))

@@ -40,7 +40,7 @@ import torch
 
 from formation.config import ConfigError, GameConfig
 from formation.recipe.config import VETO_FALLBACKS, RunConfig
-from formation.recipe.qnet import N_ACTIONS, DuelingQNetwork, NetworkSpec, outputs_of, team_q_values
+from formation.recipe.qnet import N_ACTIONS, DuelingQNetwork, NetworkSpec, agent_roles, outputs_of, team_q_values
 from formation.shield import Shield, shielded_moves
 
 FORMAT_VERSION = 1
@@ -100,7 +100,8 @@ class Policy:
 
     def q_values(self, obs: np.ndarray, module: str) -> np.ndarray:
         """Q-values of one module for uint8 observations (N, h, w, c): (N, 4), or (N, 16) for a module
-        that answers the leader (one per (leader's move, own move), row by row)."""
+        that answers the leader (one per (leader's move, own move), row by row); (N, roles, ...) for a module
+        several agents share (``NetworkSpec.roles``), each role's."""
         with torch.no_grad():
             return self.networks[module](torch.from_numpy(np.ascontiguousarray(obs))).numpy()
 
@@ -195,9 +196,12 @@ class Policy:
             by_module.setdefault(self.module_of[agent], []).append(agent)
         actions: dict[str, int] = {}
         leader = self.agent_modules[0]
+        role = dict(zip(self.agents, agent_roles(self.agent_modules)))
         for module, agents in by_module.items():
             x = np.stack([np.asarray(observations[a]) for a in agents])
             q = {module: self.q_values(x, module)}
+            if q[module].ndim == 3:  # a network the agents share: each reads its own role's Q-values
+                q[module] = q[module][np.arange(len(agents)), [role[a] for a in agents]]
             if q[module].shape[-1] != N_ACTIONS:  # it answers the leader's greedy move, from its own screen
                 q[leader] = self.q_values(x, leader)
             for agent, action in zip(agents, team_q_values(q, [leader, module])[:, 1].argmax(-1).tolist()):

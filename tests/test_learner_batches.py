@@ -5,7 +5,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from formation.recipe.loss import DISCOUNTS, LABELS, RETURNS, module_batches
+from formation.recipe.loss import DISCOUNTS, LABELS, RETURNS, ROLE, module_batches
 
 
 def test_followers_sharing_a_policy_each_contribute_their_own_rows():
@@ -29,6 +29,8 @@ def test_followers_sharing_a_policy_each_contribute_their_own_rows():
     # the shared screen and the discount repeat for every follower
     assert follower["obs"][:, 0, 0, 0].tolist() == [0, 1, 2, 0, 1, 2]
     np.testing.assert_allclose(follower[DISCOUNTS], [0.9, 0.0, 0.81, 0.9, 0.0, 0.81])
+    # each row says whose it is: the role the shared network reads
+    assert follower[ROLE].tolist() == [0, 0, 0, 1, 1, 1] and leader[ROLE].tolist() == [0, 0, 0]
 
 
 def test_a_follower_that_answers_the_leader_gets_pairs_with_the_leaders_move():
@@ -163,6 +165,49 @@ def test_threaded_module_updates_equal_rllibs_serial_update(monkeypatch):
     # the layers without weights read the observations and the next ones once for both modules on the
     # threaded path; RLlib's serial path runs each module's own: once per module and kind of observation
     assert prepared == {True: 2, False: 4}
+
+
+def test_the_rllib_learner_trains_the_shared_follower_network_on_each_rows_role():
+    """Three followers share one RLlib module; a learner update reads each row's role, so every role's one-hot
+    weights move, and the module's loss is the recipe's on that role's Q-values."""
+    import torch
+    from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
+
+    from formation.recipe.config import RunConfig
+    from formation.recipe.learn import forward
+    from formation.recipe.loss import dqn_loss
+    from formation.recipe.team import module_of_agent, spaces_of
+    from formation.rllib.algorithm import build_algorithm_config
+
+    run = RunConfig.load("configs/smoke.yaml", {"game.n_followers": 3})
+    config = build_algorithm_config(run)
+    spaces = {m: spaces_of(run) for m in set(module_of_agent(run))}
+    rng = np.random.default_rng(1)
+    n, shape = 8, spaces["leader"][0].shape
+    sample = {"obs": rng.integers(0, 2, (n, *shape), dtype=np.uint8),
+              "next_obs": rng.integers(0, 2, (n, *shape), dtype=np.uint8),
+              "actions": rng.integers(0, 4, (n, 4)), "returns": rng.normal(size=(n, 4)).astype(np.float32),
+              "discounts": np.full(n, 0.9, np.float32), "labels": np.full((n, 4), -1),
+              "weights": np.ones(n, np.float32)}
+    torch.manual_seed(0)
+    learner = config.build_learner(spaces=spaces)
+    learner.set_replays([], module_of_agent(run))
+    module = learner.module["follower"]
+    assert module.q_network.roles == 3
+    batches = module_batches(sample, module_of_agent(run))
+    follower = {k: torch.from_numpy(np.asarray(v)) for k, v in batches["follower"].items()}
+    out = forward(module.q_network, module._target_q_network, follower["obs"], follower["new_obs"],
+                  role=follower[ROLE])
+    expected = dqn_loss(follower, out["q"], out["q_next"], out["q_target_next"], 0.0, 0.0)[0]
+    fwd = module.forward_train(follower)
+    settings = learner.config.get_config_for_module("follower")
+    loss = learner.compute_loss_for_module(module_id="follower", config=settings, batch=follower, fwd_out=fwd)
+    torch.testing.assert_close(loss, expected)
+    before = module.q_network.advantage_role.weight.detach().clone()
+    learner.update(batch=MultiAgentBatch({m: SampleBatch(b) for m, b in batches.items()}, env_steps=n),
+                   timesteps={"num_env_steps_sampled_lifetime": 0})
+    after = module.q_network.advantage_role.weight.detach()
+    assert all(not torch.equal(before[:, r], after[:, r]) for r in range(3))  # every role was trained
 
 
 def test_a_safety_head_adds_its_loss_but_not_its_wrong_verdicts_to_the_priority():

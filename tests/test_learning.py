@@ -5,6 +5,7 @@ one core; the team it leaves loads with ``formation.policy.load`` and plays as i
 import json
 
 import numpy as np
+import pytest
 
 from formation.evaluate import play_greedy
 from formation.recipe.config import RunConfig
@@ -45,3 +46,24 @@ def test_the_default_recipe_learns_the_small_board_without_ray(tmp_path):
     lines = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert [row["env_steps"] for row in lines] == sorted(row["env_steps"] for row in lines)
     assert lines[-1]["greedy/success"] == summary["success"] and lines[-1]["learner_updates"] > 0
+
+
+@pytest.mark.parametrize("n_followers", [2, 3, 4])
+def test_the_default_recipe_trains_teams_of_two_to_four_followers_with_one_follower_network(tmp_path, n_followers):
+    """Any team size trains: the followers share one network that reads each one's role, and the team it leaves
+    plays its game through PettingZoo."""
+    from formation.env import parallel_env
+    from formation.policy import load
+    from formation.recipe.loop import train
+
+    run = RunConfig.load(SMALL, {"game.n_followers": n_followers, "train.total_env_steps": 640,
+                                 "train.learning_starts": 320, "eval.every_env_steps": 640, "eval.episodes": 10})
+    out = tmp_path / f"team{n_followers}"
+    train(run, out, say=lambda line: None)
+    team = load(out)
+    assert team.training["learner_updates"] > 0
+    assert set(team.networks) == {"leader", "follower"} and team.specs["follower"].roles == n_followers
+    env = parallel_env(**team.env_config)
+    observations, _ = env.reset(seed=0)
+    assert set(team.act(observations)) == set(env.agents) == {"leader", *(f"follower_{i}" for i in
+                                                                         range(1, n_followers + 1))}

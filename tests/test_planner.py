@@ -362,3 +362,27 @@ def test_config_keyword_and_scenario_object():
     assert by_config == shortest_path(scenario, 3)
     with pytest.raises(ConfigError):
         shortest_path(scenario, config=config, max_steps=10)
+
+
+# ---------------------------------------------------------------------------- larger teams
+def test_teams_too_large_to_search_get_a_lower_bound_that_the_brute_force_never_beats():
+    """Three followers: the exact search is refused in one line; ``steps_bound`` (each follower alone with the
+    leader) is never beaten by the brute force, and None only where the team has no path either. Up to two
+    followers it is the planner's exact length."""
+    from formation.planner import steps_bound
+
+    for seed, scenario, config in tiny_scenarios(1, 3, n_followers=2, max_steps=10):
+        path = shortest_path(scenario, config=config)
+        assert steps_bound(scenario, config) == (None if path is None else len(path)), seed
+    kinds = {"bound": 0, "none": 0}
+    for seed, scenario, config in tiny_scenarios(1, 8, n_followers=3, max_steps=8):
+        with pytest.raises(ConfigError, match=r"^n_followers: 3 is too large a team .* allowed: 1 to 2; "):
+            shortest_path(scenario, config=config)
+        bound = steps_bound(scenario, config)
+        if bound is None:
+            assert brute_force_length(scenario, config, config.max_steps) is None, seed
+        else:
+            assert bound >= lower_bound(scenario, config)
+            assert brute_force_length(scenario, config, bound - 1) is None, seed  # nothing shorter
+        kinds["none" if bound is None else "bound"] += 1
+    assert kinds["bound"] >= 2, kinds

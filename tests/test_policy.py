@@ -252,3 +252,36 @@ def test_a_follower_that_answers_the_leader_acts_on_the_leaders_move_after_expor
     assert again.act({"follower": observations["follower"]}) == {"follower": answer}  # it needs no message
     assert again.act_batch(obs).tolist() == [[leader_move, answer]]
     np.testing.assert_array_equal(again.q_batch(obs)[0, 1], follower_q[0, 4 * leader_move: 4 * leader_move + 4])
+
+
+@pytest.mark.parametrize("n_followers", [2, 3, 4])
+def test_followers_that_share_a_network_act_by_their_roles_through_pettingzoo_and_after_export(tmp_path, n_followers):
+    import torch
+
+    from formation.policy import Policy, export
+    from formation.recipe.team import module_of_agent, network_specs
+
+    run = RunConfig.from_dict({"game": {"setting": 1, "obs_type": "grid", "frame_stack": 2,
+                                        "n_followers": n_followers},
+                               "train": {"channels": [4, 8, 8], "hidden": 16}})
+    specs, agent_modules = network_specs(run), module_of_agent(run)
+    assert specs["follower"].roles == n_followers and specs["leader"].roles == 0
+    torch.manual_seed(n_followers)
+    policy = Policy(run.game, {m: spec.build() for m, spec in specs.items()}, specs, agent_modules, source="test")
+    again = load(export(policy, tmp_path / "team"))
+    assert again.specs["follower"].roles == n_followers
+    env = parallel_env(**again.env_config)
+    observations, _ = env.reset(seed=5)
+    for _ in range(20):
+        screen = np.stack([observations["leader"]])
+        q = again.q_batch(screen)[0]  # the followers read different roles of the same screen
+        assert all(not np.allclose(q[i], q[j]) for i in range(1, n_followers + 1) for j in range(1, i))
+        joint = again.act_batch(screen)[0]
+        actions = again.act(observations)
+        assert actions == dict(zip(env.agents, joint.tolist())) == policy.act(observations)
+        # one follower alone acts as it does in the team (its role comes from its name)
+        last = env.agents[-1]
+        assert again.act({last: observations[last]}) == {last: actions[last]}
+        observations, *_ = env.step(actions)
+        if not env.agents:
+            observations, _ = env.reset(seed=6)

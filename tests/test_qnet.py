@@ -203,6 +203,46 @@ def test_a_follower_that_answers_the_leader_reads_the_row_of_the_leaders_move():
     assert net(torch.zeros(2, 9, 9, 8, dtype=torch.uint8)).shape == (2, 16)
 
 
+def test_a_network_the_followers_share_reads_each_ones_role_as_a_one_hot_input():
+    """A network of three roles gives each role the Q-values of the same layers reading the features and the
+    role's one-hot code side by side; each follower reads its own role's, and a loss reads the row's role."""
+    from formation.recipe.learn import forward
+    from formation.recipe.qnet import agent_roles, team_q_values
+
+    torch.manual_seed(0)
+    spec = NetworkSpec((9, 9, 8), high=1.0, hidden=16, channels=(4, 8, 8), answers_leader=True, roles=3)
+    net = spec.build()
+    obs = torch.randint(0, 2, (5, 9, 9, 8), dtype=torch.uint8)
+    q = net(obs)
+    assert q.shape == (5, 3, 16)
+    features = net.features(net.prepare(obs))
+    for role in range(3):  # by hand: the first layers read [features, one-hot role]
+        code = torch.nn.functional.one_hot(torch.full((5,), role), 3).float()
+        both = torch.cat([features, code], dim=1)
+
+        def head(layers, role_layer, inputs):
+            weight = torch.cat([layers[0].weight, role_layer.weight], dim=1)
+            return layers[2](torch.relu(inputs @ weight.T + layers[0].bias))
+
+        torch.testing.assert_close(q[:, role], dueling(head(net.value, net.value_role, both),
+                                                       head(net.advantage, net.advantage_role, both)))
+    assert not torch.allclose(q[:, 0], q[:, 1])  # the roles differ on the same screens
+    modules = ["leader", "follower", "follower", "follower"]
+    assert agent_roles(modules) == [0, 0, 1, 2]
+    leader = torch.randn(5, 4).numpy()
+    team = team_q_values({"leader": leader, "follower": q.detach().numpy()}, modules)
+    for agent, role in ((1, 0), (2, 1), (3, 2)):
+        rows = q[:, role].detach().numpy().reshape(5, 4, 4)[np.arange(5), leader.argmax(1)]
+        np.testing.assert_array_equal(team[:, agent], rows)
+    role = torch.tensor([2, 0, 1, 1, 0])
+    out = forward(net, net, obs, obs, role=role)
+    torch.testing.assert_close(out["q"], q[torch.arange(5), role])
+    torch.testing.assert_close(out["q_target_next"], q[torch.arange(5), role].detach())
+    assert NetworkSpec.from_dict(spec.to_dict()) == spec
+    with pytest.raises(ValueError, match="roles"):
+        NetworkSpec((9, 9, 8), high=1.0, safety=True, roles=2).build()
+
+
 def test_networks_that_prepare_alike_share_one_preparation_and_keep_their_q_values(monkeypatch):
     from formation.recipe.qnet import q_values_of
 

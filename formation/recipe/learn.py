@@ -14,25 +14,28 @@ import numpy as np
 import torch
 
 from formation.recipe.config import RunConfig
-from formation.recipe.loss import NEXT_OBS, OBS, dqn_loss, module_batches
-from formation.recipe.qnet import DuelingQNetwork
+from formation.recipe.loss import NEXT_OBS, OBS, ROLE, dqn_loss, module_batches
+from formation.recipe.qnet import DuelingQNetwork, of_role
 from formation.recipe.team import answers_leader, module_of_agent
 
 
 def forward(net: DuelingQNetwork, target: DuelingQNetwork, obs: torch.Tensor, next_obs: torch.Tensor,
-            x: torch.Tensor | None = None, x_next: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+            x: torch.Tensor | None = None, x_next: torch.Tensor | None = None, role: torch.Tensor | None = None
+            ) -> dict[str, torch.Tensor]:
     """Q-values of ``obs`` (``q``), and of ``next_obs`` by the network and its target (``q_next``, ``q_target_next``,
     no gradient), and the safety head's logits (``safety_logits``) where the network has one. ``x``, ``x_next``:
     the observations already through the layers without weights (``DuelingQNetwork.prepare``), where the caller
-    prepared them once for several modules."""
+    prepared them once for several modules. ``role`` (N,): each row's agent, for a network several agents share
+    (``NetworkSpec.roles``; the batch's ``ROLE``): the Q-values are that agent's."""
     x = net.prepare(obs) if x is None else x
     features = net.features(x)
-    out = {"q": net.q_of(features)}
+    out = {"q": of_role(net.q_of(features), role)}
     if net.safety is not None:
         out["safety_logits"] = net.safety_logits(x, features)
     with torch.no_grad():  # targets only: no backward pass through the next observations
         x_next = net.prepare(next_obs) if x_next is None else x_next
-        out["q_next"], out["q_target_next"] = net.q_values(x_next), target.q_values(x_next)
+        out["q_next"] = of_role(net.q_values(x_next), role)
+        out["q_target_next"] = of_role(target.q_values(x_next), role)
     return out
 
 
@@ -72,7 +75,7 @@ class Learner:
         priorities, stats = {}, {}
         for module, columns in batches.items():
             batch = {key: torch.from_numpy(np.asarray(value)) for key, value in columns.items()}
-            out = forward(self.networks[module], self.targets[module], batch[OBS], batch[NEXT_OBS])
+            out = forward(self.networks[module], self.targets[module], batch[OBS], batch[NEXT_OBS], role=batch[ROLE])
             loss, priority, stats[module] = dqn_loss(batch, out["q"], out["q_next"], out["q_target_next"],
                                                      safety_logits=out.get("safety_logits"), **self.loss_weights)
             optimizer = self.optimizers[module]

@@ -15,6 +15,7 @@ from formation.recipe.qnet import N_ACTIONS
 # a module batch's columns; the first three are RLlib's own names (ray.rllib.core.columns.Columns)
 OBS, NEXT_OBS, ACTIONS = "obs", "new_obs", "actions"
 RETURNS, DISCOUNTS, LABELS, WEIGHTS = "n_step_returns", "n_step_discounts", "teacher_labels", "weights"
+ROLE = "agent_role"  # each row's agent, its index among the module's agents (formation.recipe.qnet.agent_roles)
 SAFE = "safe_joint_moves"  # teacher.safety_horizon: (N, 16) bools, the joint moves that start safe steps
 
 
@@ -25,7 +26,8 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
     ``answering`` (it answers the leader) gets actions as pairs with the leader's move, ``4 * leader +
     own`` (its Q-values' index), and labels as one own move per move of the leader, (N, 4): the
     sample's ``answers`` where it has them, its label in the row of the move the leader made, -1 where
-    there is none. With ``safety`` every module gets ``SAFE``, the sample's
+    there is none. Every row carries its agent's role (``ROLE``), for a network the agents share with it as input.
+    With ``safety`` every module gets ``SAFE``, the sample's
     ``safe`` joint moves as (N, 16) bools (leader's move, follower's move, row by row), one row per agent of
     the module."""
     rows: dict[str, list[int]] = {}
@@ -43,7 +45,8 @@ def module_batches(sample: dict[str, np.ndarray], module_of_agent: list[str],
         out[module] = {OBS: shared["obs"], NEXT_OBS: shared["next_obs"],
                        ACTIONS: np.concatenate(actions),
                        RETURNS: np.concatenate([sample["returns"][:, a] for a in agents]),
-                       DISCOUNTS: shared["discounts"], LABELS: np.concatenate(labels), WEIGHTS: shared["weights"]}
+                       DISCOUNTS: shared["discounts"], LABELS: np.concatenate(labels), WEIGHTS: shared["weights"],
+                       ROLE: np.repeat(np.arange(len(agents), dtype=np.int64), len(leader))}
         if safety:
             out[module][SAFE] = _repeat(joint_mask_bits(sample["safe"]).reshape(len(leader), -1), len(agents))
     return out

@@ -19,6 +19,11 @@ the whole screens.
 A network that *answers the leader* (a follower's, ``train.follower_answers_leader``) outputs one
 Q-value per pair (leader's move, own move), 16 in all, row by row: the follower picks its move in
 the row of the move the leader makes (``team_q_values``).
+
+A network that several agents share (the followers of a team of two or more) takes each agent's index among them,
+its *role*, as input: a one-hot code beside the encoder's features, read by both heads (as parameter-sharing MARL
+gives every agent its id). All agents see the same screen, so the encoder runs once and the heads once per role:
+such a network outputs ``(N, roles, outputs)``, every role's Q-values of the same screens (``agent_roles``).
 """
 
 from __future__ import annotations
@@ -52,7 +57,7 @@ def encoder(obs_shape: tuple[int, int, int], channels: tuple[int, int, int] = (1
 
 def dueling(value: torch.Tensor, advantage: torch.Tensor) -> torch.Tensor:
     """Q(s, a) = V(s) + A(s, a) - mean_a' A(s, a')   (Wang et al. 2016, eq. 9; the paper's dueling head)."""
-    return value + advantage - advantage.mean(dim=1, keepdim=True)
+    return value + advantage - advantage.mean(dim=-1, keepdim=True)
 
 
 def team_q_values(q: dict[str, np.ndarray], modules: list[str], leader_moves: np.ndarray | None = None
@@ -65,9 +70,30 @@ def team_q_values(q: dict[str, np.ndarray], modules: list[str], leader_moves: np
     if leader_moves is None:
         leader_moves = q[modules[0]].argmax(-1)
     rows = np.arange(len(leader_moves))
-    answered = {m: v.reshape(-1, N_ACTIONS, N_ACTIONS)[rows, leader_moves] if v.shape[-1] == N_ACTIONS ** 2 else v
-                for m, v in q.items()}
-    return np.stack([answered[m] for m in modules], axis=1)
+
+    def answered(v: np.ndarray) -> np.ndarray:
+        return v.reshape(-1, N_ACTIONS, N_ACTIONS)[rows, leader_moves] if v.shape[-1] == N_ACTIONS ** 2 else v
+
+    # a network of several roles (N, roles, outputs): each agent reads its own role's
+    return np.stack([answered(q[m][:, role] if q[m].ndim == 3 else q[m])
+                     for m, role in zip(modules, agent_roles(modules))], axis=1)
+
+
+def of_role(q: torch.Tensor, role: torch.Tensor | None) -> torch.Tensor:
+    """(N, outputs): each sample's Q-values for the agent of its ``role`` (N,), from a network's ``q``; the
+    Q-values of a network without roles, (N, outputs), as they are."""
+    return q if q.dim() == 2 else q[torch.arange(len(q), device=q.device), role.long()]
+
+
+def agent_roles(modules: list[str]) -> list[int]:
+    """Each agent's role, its index among the agents of its module (``modules``: each agent's module, leader
+    first): follower ``i`` of a team whose followers share a network has role ``i - 1``."""
+    seen: dict[str, int] = {}
+    roles = []
+    for m in modules:
+        roles.append(seen.get(m, 0))
+        seen[m] = roles[-1] + 1
+    return roles
 
 
 def first_entry(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -244,7 +270,9 @@ class NetworkSpec:
     of 4. ``safety``: a second head beside the dueling one, 16 logits of whether each joint move (leader's
     move, follower's move, row by row) is safe (``safety_logits``, ``teacher.safety_horizon``).
     ``safety_encoder``: that head reads an encoder of its own, a copy of the layers the Q-values read, instead
-    of their features (``teacher.safety_encoder``)."""
+    of their features (``teacher.safety_encoder``). ``roles``: the number of agents that share the network, each
+    with its role (index) as input, the Q-values ``(N, roles, outputs)``; 0: one agent, no role input, ``(N,
+    outputs)``."""
 
     obs_shape: tuple[int, int, int]
     high: float = 255.0
@@ -257,6 +285,7 @@ class NetworkSpec:
     answers_leader: bool = False
     safety: bool = False
     safety_encoder: bool = False
+    roles: int = 0
 
     def build(self) -> DuelingQNetwork:
         return DuelingQNetwork(self)
@@ -274,7 +303,7 @@ class NetworkSpec:
             if key not in known:
                 raise ConfigError(f"{where}.{key}: unknown key; allowed: {', '.join(known)}")
         kinds = {"obs_shape": int, "channels": int, "window": int, "cells": int, "high": float, "hidden": int,
-                 "frame_channels": int}
+                 "frame_channels": int, "roles": int}
         out = {}
         for key, value in values.items():
             kind = kinds.get(key, bool)
@@ -326,6 +355,13 @@ class DuelingQNetwork(nn.Module):
         self.value = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, 1))
         outputs = N_ACTIONS ** 2 if answers_leader else N_ACTIONS
         self.advantage = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, outputs))
+        self.roles = spec.roles
+        if spec.roles:
+            if safety:
+                raise ValueError("roles: a network with a safety head has one agent")
+            # the one-hot role's weights in each head's first layer (the features' are the layer itself)
+            self.value_role = nn.Linear(spec.roles, hidden, bias=False)
+            self.advantage_role = nn.Linear(spec.roles, hidden, bias=False)
         self.safety = None
         if safety:
             self.safety = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(), nn.Linear(hidden, N_ACTIONS ** 2))
@@ -371,7 +407,17 @@ class DuelingQNetwork(nn.Module):
         return self.q_of(self.features(x))
 
     def q_of(self, features: torch.Tensor) -> torch.Tensor:
-        return dueling(self.value(features), self.advantage(features))
+        """The dueling head's Q-values from ``features``: (N, outputs), or (N, roles, outputs) with ``roles``,
+        each role's first layer the features' plus its one-hot code's (the layer read on both, concatenated)."""
+        if not self.roles:
+            return dueling(self.value(features), self.advantage(features))
+
+        def head(layers: nn.Sequential, role: nn.Linear) -> torch.Tensor:
+            hidden = layers[0](features)[:, None, :] + role.weight.T[None]  # (N, roles, hidden)
+            return layers[2](layers[1](hidden))
+
+        return dueling(head(self.value, self.value_role), head(self.advantage, self.advantage_role))
+
 
     def safety_logits(self, x: torch.Tensor, features: torch.Tensor | None = None) -> torch.Tensor:
         """(N, 16) logits of each joint move being safe, from ``prepare``'s output (a network with ``safety``).

@@ -47,6 +47,14 @@ def answers_leader(run: RunConfig, module: str) -> bool:
     return run.train.follower_answers_leader and module != module_of_agent(run)[0]
 
 
+def roles_of(run: RunConfig, module: str) -> int:
+    """The roles of ``module``'s network (``NetworkSpec.roles``): the number of its agents where several share it
+    (the followers of a team of two or more), 0 for a network of one agent. RLlib's own DQN (``train.path: stock``)
+    gives its modules no role input."""
+    agents = module_of_agent(run).count(module)
+    return agents if agents > 1 and run.train.path == "formation" else 0
+
+
 def network_specs(run: RunConfig) -> dict[str, NetworkSpec]:
     """Each module's network. ``train.leader_window`` (in cells) becomes the network's ``window`` (in entries of
     what it reads: cells of a grid or of a screen read per cell, pixels of a screen) and ``frame_channels``;
@@ -68,5 +76,5 @@ def network_specs(run: RunConfig) -> dict[str, NetworkSpec]:
                            window=window, frame_channels=frame_channels,
                            cells=(game.height, game.width) if per_cell else None, forecast=t.obstacle_forecast,
                            answers_leader=answers_leader(run, m), safety=run.safety_head,
-                           safety_encoder=run.safety_head and run.teacher.safety_encoder)
+                           safety_encoder=run.safety_head and run.teacher.safety_encoder, roles=roles_of(run, m))
             for m in sorted(set(module_of_agent(run)))}

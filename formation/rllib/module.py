@@ -27,6 +27,7 @@ from ray.rllib.utils.schedules.scheduler import Scheduler
 
 from formation.recipe.collect import epsilon_greedy
 from formation.recipe.learn import forward
+from formation.recipe.loss import ROLE
 from formation.recipe.qnet import N_ACTIONS, NetworkSpec
 
 # a batch's observations as DuelingQNetwork.prepare makes them, when the learner prepared them already
@@ -82,6 +83,6 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
         observations prepared (``PREPARED_OBS``, ``PREPARED_NEXT_OBS``: the learner prepares once for every module
         that prepares alike)."""
         out = forward(self.q_network, self._target_q_network, batch[Columns.OBS], batch[Columns.NEXT_OBS],
-                      batch.get(PREPARED_OBS), batch.get(PREPARED_NEXT_OBS))
+                      batch.get(PREPARED_OBS), batch.get(PREPARED_NEXT_OBS), batch.get(ROLE))
         return {QF_PREDS: out["q"], QF_NEXT_PREDS: out["q_next"], QF_TARGET_NEXT_PREDS: out["q_target_next"],
                 **({SAFETY_LOGITS: out["safety_logits"]} if "safety_logits" in out else {})}
