@@ -20,3 +20,15 @@ def test_watch_sees_each_live_step_before_it_is_played():
 
     played = play_greedy(SMALL, lambda obs: rng.integers(0, 4, size=(len(obs), 2)), 20, seed=5, watch=watch)
     assert (seen_steps == played["steps"]).all() and seen_steps.min() >= 1
+
+
+def test_a_team_of_three_followers_is_evaluated_against_the_planners_lower_bound():
+    from formation.evaluate import evaluate_policy, format_report
+
+    config = GameConfig.from_setting(1, n_followers=3, obs_type="grid", frame_stack=1)
+    report = evaluate_policy(config, lambda obs: np.zeros((len(obs), 4), np.int64), 8, 0)
+    p = report["planner"]
+    assert p["planner_exact"] is False and set(p["best_return_mean"].values()) == {None}
+    assert p["planner_solved"] == 8 and p["planner_steps_mean"] >= config.height - 1  # the leader's rows to go
+    text = format_report(report)
+    assert "at least" in text and "a lower bound (each follower alone with the leader)" in text

@@ -8,6 +8,17 @@ import pytest
 from formation.recipe.loss import DISCOUNTS, LABELS, RETURNS, ROLE, module_batches
 
 
+def random_sample(rng: np.random.Generator, n: int, shape: tuple, agents: int, labelled: bool = True) -> dict:
+    """A replay sample (``FrameReplay.sample``'s keys) of ``n`` random 0/1 observations of ``shape`` and ``agents``
+    agents' actions, returns and labels (-1, none, unless ``labelled``)."""
+    return {"obs": rng.integers(0, 2, (n, *shape), dtype=np.uint8),
+            "next_obs": rng.integers(0, 2, (n, *shape), dtype=np.uint8),
+            "actions": rng.integers(0, 4, (n, agents)), "returns": rng.normal(size=(n, agents)).astype(np.float32),
+            "discounts": np.full(n, 0.9, np.float32),
+            "labels": rng.integers(-1, 4, (n, agents)) if labelled else np.full((n, agents), -1),
+            "weights": np.ones(n, np.float32)}
+
+
 def test_followers_sharing_a_policy_each_contribute_their_own_rows():
     n = 3
     sample = {"obs": np.arange(n)[:, None, None, None] * np.ones((1, 2, 2, 1), np.uint8),
@@ -128,13 +139,8 @@ def test_threaded_module_updates_equal_rllibs_serial_update(monkeypatch):
     run = RunConfig.load("configs/smoke.yaml")
     config = build_algorithm_config(run)
     spaces = {m: spaces_of(run) for m in set(module_of_agent(run))}
-    rng = np.random.default_rng(0)
-    n, shape = 16, spaces["leader"][0].shape
-    sample = {"obs": rng.integers(0, 2, (n, *shape), dtype=np.uint8),
-              "next_obs": rng.integers(0, 2, (n, *shape), dtype=np.uint8),
-              "actions": rng.integers(0, 4, (n, 2)), "returns": rng.normal(size=(n, 2)).astype(np.float32),
-              "discounts": np.full(n, 0.9, np.float32), "labels": rng.integers(-1, 4, (n, 2)),
-              "weights": np.ones(n, np.float32)}
+    n = 16
+    sample = random_sample(np.random.default_rng(0), n, spaces["leader"][0].shape, agents=2)
     weights, prepared = {}, {}
     real_prepare = DuelingQNetwork.prepare
 
@@ -182,13 +188,8 @@ def test_the_rllib_learner_trains_the_shared_follower_network_on_each_rows_role(
     run = RunConfig.load("configs/smoke.yaml", {"game.n_followers": 3})
     config = build_algorithm_config(run)
     spaces = {m: spaces_of(run) for m in set(module_of_agent(run))}
-    rng = np.random.default_rng(1)
-    n, shape = 8, spaces["leader"][0].shape
-    sample = {"obs": rng.integers(0, 2, (n, *shape), dtype=np.uint8),
-              "next_obs": rng.integers(0, 2, (n, *shape), dtype=np.uint8),
-              "actions": rng.integers(0, 4, (n, 4)), "returns": rng.normal(size=(n, 4)).astype(np.float32),
-              "discounts": np.full(n, 0.9, np.float32), "labels": np.full((n, 4), -1),
-              "weights": np.ones(n, np.float32)}
+    n = 8
+    sample = random_sample(np.random.default_rng(1), n, spaces["leader"][0].shape, agents=4, labelled=False)
     torch.manual_seed(0)
     learner = config.build_learner(spaces=spaces)
     learner.set_replays([], module_of_agent(run))
