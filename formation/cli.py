@@ -226,12 +226,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         policy = policy.with_veto_threshold(_veto_threshold(args.veto_threshold))
     if args.veto_fallback is not None:
         policy = policy.with_veto_fallback(args.veto_fallback)
-    trained_on = policy.game.setting
-    if args.setting is not None and trained_on != args.setting:
-        what = f"setting {trained_on}" if trained_on is not None else \
-            f"no named setting (a {policy.game.height}x{policy.game.width} board)"
-        raise ConfigError(f"--setting {args.setting}: {args.checkpoint} was trained on {what}, not setting "
-                          f"{args.setting}")
+    trained_on = policy.game
+    if args.setting is not None or args.followers is not None:
+        try:
+            policy = policy.for_game(setting=args.setting, n_followers=args.followers)
+        except ConfigError as err:
+            about_team = str(err).startswith(("game.n_followers", "n_followers", "follower_starts"))
+            flag = "--followers" if about_team or args.setting is None else "--setting"
+            raise ConfigError(f"{flag}: {err}") from None
     episodes = args.episodes or policy.eval_settings["episodes"]
     seed = policy.eval_settings["seed"] if args.seed is None else args.seed
     workers = args.workers or min(os.cpu_count() or 1, 8)
@@ -248,7 +250,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         print(f"{start}{phase}: {done}/{total} episodes", end=end, file=sys.stderr, flush=True)
 
     report = evaluate_policy(policy.game, policy.act_batch, episodes, seed, workers=workers, progress=progress)
-    report = {"checkpoint": str(args.checkpoint), "setting": trained_on, "env_steps": policy.env_steps,
+    report = {"checkpoint": str(args.checkpoint), "setting": policy.game.setting, "followers": policy.game.n_followers,
+              "trained_on": {"setting": trained_on.setting, "followers": trained_on.n_followers},
+              "env_steps": policy.env_steps,
               "shield": args.shield, "veto_threshold": policy.veto_threshold if policy.learned_veto else None,
               "veto_fallback": policy.veto_fallback if policy.learned_veto else None,
               "trained": how_trained(policy), **report}
@@ -259,6 +263,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
              if policy.learned_veto else ""))
     if (trained := training_line(policy.training)) is not None:  # cards from before it have none: nothing
         print(trained)
+    if (policy.game.setting, policy.game.n_followers) != (trained_on.setting, trained_on.n_followers):
+        print(f"playing setting {policy.game.setting} with {policy.game.n_followers} follower(s); trained on setting "
+              f"{trained_on.setting} with {trained_on.n_followers}")
     print(format_report(report))
     if args.json:
         write_text_whole(args.json, json.dumps(report, indent=2) + "\n")
@@ -358,7 +365,10 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("checkpoint", help=CHECKPOINT_HELP)
     evaluate.add_argument("--episodes", type=int, help="episodes (default: the run's eval.episodes, or 200)")
     evaluate.add_argument("--seed", type=int, help="scenario seed (default: the run's eval.seed, or 1000000)")
-    evaluate.add_argument("--setting", type=int, help="fail unless the policy was trained on this named setting")
+    evaluate.add_argument("--setting", type=int,
+                          help="play named setting K (default: the policy's own game)")
+    evaluate.add_argument("--followers", type=int, metavar="N",
+                          help="play a team of N followers (default: the policy's own)")
     evaluate.add_argument("--workers", type=int, help="processes for the planner (default: the CPU cores, up to 8)")
     evaluate.add_argument("--json", metavar="PATH", help="also write the numbers as JSON")
     evaluate.add_argument("--shield", type=int, default=0, metavar="STEPS",

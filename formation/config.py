@@ -97,6 +97,19 @@ class GameConfig:
     def replace(self, **changes: Any) -> GameConfig:
         return GameConfig.from_dict({**self.to_dict(), **changes})
 
+    def variant(self, setting: int | None = None, n_followers: int | None = None) -> GameConfig:
+        """The same rules on another named ``setting`` (its board, obstacles and formation) and/or with another
+        number of followers, from the default starts; the rest (distances, rewards, screens) as they are. None:
+        as this game has it."""
+        values = {k: v for k, v in self.to_dict().items() if k not in ("leader_start", "follower_starts")}
+        if setting is not None:
+            for key in (*SETTINGS[1], "setting"):
+                values.pop(key)
+            values["setting"] = setting
+        if n_followers is not None:
+            values["n_followers"] = n_followers
+        return GameConfig.from_dict(values)
+
     # ----------------------------------------------------------------- derived values
     @property
     def destination(self) -> tuple[int, int]:

@@ -30,6 +30,7 @@ a ``ConfigError`` with one line naming the problem.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import pickle
 from pathlib import Path
@@ -113,6 +114,46 @@ class Policy:
 
     def _q_by_module(self, obs: np.ndarray) -> dict[str, np.ndarray]:
         return {m: self.q_values(obs, m) for m in sorted(set(self.agent_modules))}
+
+    def for_game(self, game: GameConfig | None = None, *, setting: int | None = None,
+                 n_followers: int | None = None) -> Policy:
+        """The same weights playing another game: ``game``, or this one on named ``setting`` and/or with
+        ``n_followers`` (``GameConfig.variant``). Networks that look through the leader's window on a board read
+        cell by cell (``train.leader_window``, and ``train.screen_cells`` on screens) read every board alike, and
+        a follower network with roles plays a team of up to that many followers. Where the networks cannot read
+        the game, a one-line ``PolicyError`` says why."""
+        game = game if game is not None else self.game.variant(setting, n_followers)
+        for key in ("obs_type", "frame_stack"):
+            if getattr(game, key) != getattr(self.game, key):
+                raise PolicyError(f"game.{key}: {getattr(game, key)!r} is not allowed; this policy reads "
+                                  f"{getattr(self.game, key)!r}")
+        board = (game.height, game.width)
+        specs = {}
+        for module, spec in self.specs.items():
+            if spec.window is None or (game.obs_type == "pixels" and spec.cells is None):
+                raise PolicyError(f"game: this policy's {module} network reads the whole {self.game.height}x"
+                                  f"{self.game.width} board, not a window around the leader; it plays that board only")
+            if game.obs_type == "pixels":
+                specs[module] = dataclasses.replace(spec, cells=board)
+            else:
+                specs[module] = dataclasses.replace(spec, obs_shape=(*board, spec.obs_shape[2]))
+        follower = self.agent_modules[1]
+        roles = max(specs[follower].roles, 1)
+        if game.n_followers > roles:
+            raise PolicyError(f"game.n_followers: {game.n_followers} is not allowed; this policy's follower network "
+                              f"plays 1 to {roles}")
+        if game.n_followers > 1 and (self.learned_veto or self.shield is not None):
+            raise PolicyError(f"game.n_followers: {game.n_followers} is not allowed with a safety head or a shield; "
+                              "allowed: 1")
+        networks = {m: spec.build() for m, spec in specs.items()}
+        for module, net in networks.items():
+            net.load_state_dict(self.networks[module].state_dict())
+        twin = Policy(game, networks, specs, [self.agent_modules[0]] + [follower] * game.n_followers, self.source,
+                      self.env_steps, self.eval_settings)
+        for key in ("refit_report", "training", "veto_threshold", "veto_fallback", "learned_veto"):
+            setattr(twin, key, getattr(self, key))
+        twin.shield = None if self.shield is None else Shield(game, self.shield.horizon)
+        return twin
 
     def shielded(self, horizon: int) -> Policy:
         """The same networks behind a safety shield that looks ``horizon`` steps ahead

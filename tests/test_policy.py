@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from formation.cli import main
+from formation.config import ConfigError
 from formation.env import parallel_env
 from formation.evaluate import compare_with_planner, planner_paths, planner_reference, play_greedy, replay_paths
 from formation.policy import RL_MODULES, PolicyError, load
@@ -163,9 +164,49 @@ def test_a_missing_path_or_a_folder_without_a_checkpoint_is_one_line(tmp_path, c
         load(tmp_path / "empty")
 
 
-def test_a_checkpoint_of_another_setting_is_one_line_naming_both(run_dir, capfd):
-    line = _one_line_error(capfd, main(["evaluate", str(run_dir), "--setting", "2"]))
-    assert "--setting 2" in line and "no named setting" in line and "9x9" in line
+def test_a_game_the_policy_cannot_play_is_one_line_naming_the_flag(run_dir, capfd):
+    line = _one_line_error(capfd, main(["evaluate", str(run_dir), "--setting", "7"]))
+    assert "error: --setting: " in line and "allowed: 1, 2, 3, 4" in line
+    line = _one_line_error(capfd, main(["evaluate", str(run_dir), "--followers", "2"]))
+    assert "error: --followers: " in line and "plays 1 to 1" in line
+    line = _one_line_error(capfd, main(["evaluate", str(run_dir), "--followers", "0"]))
+    assert "error: --followers: " in line and "n_followers" in line
+
+
+def test_a_policy_that_looks_through_the_leaders_window_plays_another_board(export_dir, capfd):
+    policy = load(export_dir)  # trained on a 9x9 board, it plays setting 2's 25x25 board zero-shot
+    other = policy.for_game(setting=2)
+    assert (other.game.setting, other.game.height, other.game.formation) == (2, 25, "vertical")
+    assert other.game.obs_type == policy.game.obs_type and other.game.frame_stack == policy.game.frame_stack
+    for module, net in other.networks.items():
+        mine = policy.networks[module].state_dict()
+        assert all(np.array_equal(v, mine[k]) for k, v in net.state_dict().items())
+    env = parallel_env(**other.env_config)
+    observations, _ = env.reset(seed=1)
+    actions = other.act(observations)
+    assert actions == dict(zip(env.agents, other.act_batch(np.stack([observations["leader"]]))[0].tolist()))
+    assert set(actions.values()) <= {0, 1, 2, 3}
+    # on its own game it acts as itself
+    same = policy.for_game(setting=None)
+    observations, _ = parallel_env(**policy.env_config).reset(seed=2)
+    assert same.act(observations) == policy.act(observations)
+    assert main(["evaluate", str(export_dir), "--setting", "2", "--episodes", "3", "--workers", "1"]) == 0
+    out = capfd.readouterr().out
+    assert "playing setting 2 with 1 follower(s); trained on setting None with 1" in out
+
+
+def test_a_policy_refuses_games_its_networks_cannot_read(export_dir):
+    import dataclasses
+
+    from formation.policy import Policy
+
+    policy = load(export_dir)
+    with pytest.raises(PolicyError, match=r"^game.obs_type: 'pixels' is not allowed; this policy reads 'grid'$"):
+        policy.for_game(policy.game.replace(obs_type="pixels"))
+    whole = Policy(policy.game, policy.networks, {m: dataclasses.replace(s, window=None) for m, s in
+                                                  policy.specs.items()}, policy.agent_modules, source="test")
+    with pytest.raises(PolicyError, match="reads the whole 9x9 board"):
+        whole.for_game(setting=1)
 
 
 def test_a_truncated_export_module_is_one_line_and_no_traceback(export_dir, tmp_path, cli):
@@ -285,3 +326,10 @@ def test_followers_that_share_a_network_act_by_their_roles_through_pettingzoo_an
         observations, *_ = env.step(actions)
         if not env.agents:
             observations, _ = env.reset(seed=6)
+    # the same networks play smaller teams, each follower by its role, and no larger one
+    smaller = again.for_game(n_followers=n_followers - 1)
+    observations, _ = parallel_env(**smaller.env_config).reset(seed=8)
+    screen = np.stack([observations["leader"]])
+    np.testing.assert_array_equal(smaller.q_batch(screen)[0], again.q_batch(screen)[0, :n_followers])
+    with pytest.raises(ConfigError, match=f"plays 1 to {n_followers}$|no default start for n_followers=5"):
+        again.for_game(n_followers=n_followers + 1)
