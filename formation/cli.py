@@ -263,9 +263,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
              if policy.learned_veto else ""))
     if (trained := training_line(policy.training)) is not None:  # cards from before it have none: nothing
         print(trained)
-    if (policy.game.setting, policy.game.n_followers) != (trained_on.setting, trained_on.n_followers):
-        print(f"playing setting {policy.game.setting} with {policy.game.n_followers} follower(s); trained on setting "
-              f"{trained_on.setting} with {trained_on.n_followers}")
+    games = ((policy.training or {}).get("config") or {}).get("games")
+    trained = {(s, k) for s in games["settings"] for k in games["followers"]} if games else \
+        {(trained_on.setting, trained_on.n_followers)}
+    if (policy.game.setting, policy.game.n_followers) not in trained:
+        what = f"settings {games['settings']} with {games['followers']} followers" if games else \
+            f"setting {trained_on.setting} with {trained_on.n_followers}"
+        print(f"zero-shot: playing setting {policy.game.setting} with {policy.game.n_followers} follower(s); trained "
+              f"on {what}")
     print(format_report(report))
     if args.json:
         write_text_whole(args.json, json.dumps(report, indent=2) + "\n")

@@ -186,6 +186,9 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         if checkpoint_path(out_dir).exists():
             raise ConfigError(f"--out: {str(out_dir)!r} already holds a run; use --resume to continue it "
                               "or choose another --out")
+    if run.games is not None:
+        raise ConfigError("games: a team of many games trains in one process for now; allowed: formation train "
+                          "CONFIG --no-ray")
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "config.yaml").write_text(yaml.safe_dump(run.to_dict(), sort_keys=False))
     earlier = read_training_record(out_dir) if resume else None

@@ -67,3 +67,63 @@ def test_the_default_recipe_trains_teams_of_two_to_four_followers_with_one_follo
     observations, _ = env.reset(seed=0)
     assert set(team.act(observations)) == set(env.agents) == {"leader", *(f"follower_{i}" for i in
                                                                          range(1, n_followers + 1))}
+
+
+def test_one_team_trains_on_several_settings_and_team_sizes_and_plays_each(tmp_path, capfd):
+    """A ``games`` section: one leader network and one follower network learn from every (setting, followers) game
+    at once, their weights shared across boards, and the team plays each game as it was evaluated in training."""
+    import torch
+
+    from formation.policy import load
+    from formation.recipe.loop import train
+
+    run = RunConfig.from_dict({"game": {"obs_type": "pixels", "frame_stack": 2},
+                               "games": {"settings": [1, 3], "followers": [1, 2]},
+                               "train": {"total_env_steps": 1024, "learning_starts": 256, "batch_size": 16,
+                                         "channels": [4, 8, 8], "hidden": 16, "replay_capacity": 4000},
+                               "resources": {"games_per_actor": 4}, "eval": {"every_env_steps": 1024,
+                                                                             "episodes": 4, "gif_episodes": 0}})
+    out = tmp_path / "generalist"
+    weights = {}
+    summary = train(run, out, say=lambda line: None)
+    names = {"setting1_followers1", "setting1_followers2", "setting3_followers1", "setting3_followers2"}
+    assert set(summary["games"]) == names
+    assert summary["success"] == np.mean([s["success"] for s in summary["games"].values()])
+    team = load(out)
+    assert team.training["learner_updates"] >= 1024 * run.train.replay_ratio
+    assert team.specs["follower"].roles == 2 and team.specs["leader"].roles == 0
+    row = json.loads((out / "metrics.jsonl").read_text().splitlines()[-1])
+    for name in sorted(names):
+        setting, followers = int(name[7]), int(name[-1])
+        game = team.for_game(setting=setting, n_followers=followers)
+        played = play_greedy(game.game, game.act_batch, run.eval.episodes, run.eval.seed)["summary"]
+        assert played["success"] == summary["games"][name]["success"] == row[f"greedy/{name}/success"]
+        weights[name] = {m: {k: v.clone() for k, v in net.state_dict().items()} for m, net in game.networks.items()}
+    # one set of weights, whatever the board
+    first = weights["setting1_followers1"]
+    assert all(torch.equal(first[m][k], w[m][k]) for w in weights.values() for m in w for k in w[m])
+    # formation evaluate plays each of its games, and says where a game is not one of them
+    from formation.cli import main
+
+    assert main(["evaluate", str(out), "--setting", "3", "--followers", "2", "--episodes", "2", "--workers", "1"]) == 0
+    assert "zero-shot" not in capfd.readouterr().out
+    assert main(["evaluate", str(out), "--setting", "2", "--episodes", "2", "--workers", "1"]) == 0
+    assert "zero-shot: playing setting 2 with 1 follower(s); trained on settings [1, 3] with [1, 2] followers" in \
+        capfd.readouterr().out
+
+
+def test_a_team_of_many_games_is_refused_in_one_line_where_it_cannot_train(tmp_path, capfd):
+    from formation.cli import main
+    from formation.config import ConfigError
+
+    assert main(["train", "configs/generalist.yaml", "--out", str(tmp_path / "run")]) != 0  # Ray's path
+    err = capfd.readouterr().err.strip().splitlines()
+    assert err == ["formation: error: games: a team of many games trains in one process for now; allowed: formation "
+                   "train CONFIG --no-ray"] and not (tmp_path / "run").exists()
+
+    with pytest.raises(ConfigError, match="^games: .* allowed: no teacher$"):
+        RunConfig.from_dict({"games": {"settings": [1]}, "teacher": {}})
+    with pytest.raises(ConfigError, match=r"^games.followers: \[5\] is not allowed"):
+        RunConfig.from_dict({"games": {"followers": [5]}})
+    with pytest.raises(ConfigError, match="^games: every board is read alike only through the leader's window"):
+        RunConfig.from_dict({"games": {}, "train": {"leader_window": None}})

@@ -192,7 +192,7 @@ def test_a_policy_that_looks_through_the_leaders_window_plays_another_board(expo
     assert same.act(observations) == policy.act(observations)
     assert main(["evaluate", str(export_dir), "--setting", "2", "--episodes", "3", "--workers", "1"]) == 0
     out = capfd.readouterr().out
-    assert "playing setting 2 with 1 follower(s); trained on setting None with 1" in out
+    assert "zero-shot: playing setting 2 with 1 follower(s); trained on setting None with 1" in out
 
 
 def test_a_policy_refuses_games_its_networks_cannot_read(export_dir):

@@ -331,9 +331,28 @@ class CheckpointSettings:
         _integer(self, "every_iterations", 1, section="checkpoint")
 
 
+@dataclass(frozen=True)
+class GamesSettings:
+    """One team for many games (optional; a ``games`` section turns it on): the leader network and the follower
+    network play every named setting of ``settings`` with every team size of ``followers`` at once, each game
+    from the ``game`` section's other rules. The followers' network has a role for each follower of the largest
+    team. Trains with ``formation train CONFIG --no-ray``."""
+
+    settings: tuple[int, ...] = (1, 2, 3, 4)  # the named settings played
+    followers: tuple[int, ...] = (1, 2, 3)  # the team sizes played on each
+
+    def __post_init__(self) -> None:
+        for name, allowed in (("settings", (1, 2, 3, 4)), ("followers", (1, 2, 3, 4))):
+            values = getattr(self, name)
+            if not (isinstance(values, tuple) and values and len(set(values)) == len(values)
+                    and all(v in allowed for v in values)):
+                raise ConfigError(f"games.{name}: {list(values) if isinstance(values, tuple) else values!r} is not "
+                                  f"allowed; allowed: a list of distinct values from {', '.join(map(str, allowed))}")
+
+
 SECTIONS = {"train": TrainSettings, "resources": ResourceSettings, "eval": EvalSettings,
             "checkpoint": CheckpointSettings, "refit": RefitSettings}
-OPTIONAL_SECTIONS = {"teacher": TeacherSettings}  # absent: off
+OPTIONAL_SECTIONS = {"teacher": TeacherSettings, "games": GamesSettings}  # absent: off
 # what train.path: stock needs: RLlib's DQN has none of the recipe's rewards, priorities or answering followers
 STOCK_TRAIN = {"shaping": 0.0, "prioritized": False, "follower_answers_leader": False, "reward_formation_kept": None,
                "team_reward": False}
@@ -349,8 +368,18 @@ class RunConfig:
     checkpoint: CheckpointSettings = field(default_factory=CheckpointSettings)
     refit: RefitSettings = field(default_factory=RefitSettings)
     teacher: TeacherSettings | None = None  # None: the reward-only recipe
+    games: GamesSettings | None = None  # None: the team plays ``game`` alone
 
     def __post_init__(self) -> None:
+        if self.games is not None:
+            for name, on in (("teacher", self.teacher is not None), ("refit.rounds", self.refit.rounds > 0),
+                             ("train.path: stock", self.train.path == "stock")):
+                if on:
+                    raise ConfigError(f"games: a team of many games trains from the reward alone with the recipe's "
+                                      f"path; allowed: no {name}")
+            if self.train.leader_window is None or (self.game.obs_type == "pixels" and not self.train.screen_cells):
+                raise ConfigError("games: every board is read alike only through the leader's window, cell by cell; "
+                                  "allowed: train.leader_window set, and train.screen_cells: true on pixels")
         patches = self.game.obs_type == "pixels" and not self.train.screen_cells
         teacher = self.teacher
         if teacher is not None and self.game.n_followers not in PLANNER_FOLLOWERS:
@@ -415,8 +444,9 @@ class RunConfig:
         parts = {"game": game}
         for name in SECTIONS:
             parts[name] = section_of(name, values.get(name))
-        if "teacher" in values:  # present, even empty: the teacher recipe
-            parts["teacher"] = section_of("teacher", values["teacher"])
+        for name in OPTIONAL_SECTIONS:  # present, even empty: on
+            if name in values:
+                parts[name] = section_of(name, values[name])
         return cls(**parts)
 
     @classmethod
@@ -458,9 +488,18 @@ class RunConfig:
         out = {"game": self.game.to_dict()}
         for name in SECTIONS:
             out[name] = _plain(getattr(self, name))
-        if self.teacher is not None:
-            out["teacher"] = _plain(self.teacher)
+        for name in OPTIONAL_SECTIONS:
+            if getattr(self, name) is not None:
+                out[name] = _plain(getattr(self, name))
         return out
+
+    def kinds(self) -> list[RunConfig]:
+        """The run of each game the team plays: with a ``games`` section, one per (setting, followers), each with
+        the ``game`` section's other rules; else this run alone."""
+        if self.games is None:
+            return [self]
+        return [dataclasses.replace(self, game=self.game.variant(setting, k))
+                for setting in self.games.settings for k in self.games.followers]
 
 
 def _plain(section: Any) -> dict[str, Any]:

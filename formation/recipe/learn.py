@@ -67,15 +67,19 @@ class Learner:
         self.loss_weights = loss_weights(run)
         self.updates = 0
 
-    def update(self, sample: dict[str, np.ndarray]) -> tuple[np.ndarray, dict[str, dict[str, float]]]:
+    def update(self, sample: dict[str, np.ndarray], game: tuple[list[str], dict, dict] | None = None
+               ) -> tuple[np.ndarray, dict[str, dict[str, float]]]:
         """One update of every module; the sample's new priorities (the largest over modules) and each module's
-        statistics (``dqn_loss``)."""
+        statistics (``dqn_loss``). ``game``: the sample's agents' modules, and networks and target networks that
+        read its game (``formation.recipe.qnet.tied`` to this learner's), where it is another game of the run's
+        ``games``; None: the run's own."""
         t = self.run.train
-        batches = module_batches(sample, self.agent_modules, self.answering, self.run.safety_head)
+        agent_modules, networks, targets = game or (self.agent_modules, self.networks, self.targets)
+        batches = module_batches(sample, agent_modules, self.answering, self.run.safety_head)
         priorities, stats = {}, {}
         for module, columns in batches.items():
             batch = {key: torch.from_numpy(np.asarray(value)) for key, value in columns.items()}
-            out = forward(self.networks[module], self.targets[module], batch[OBS], batch[NEXT_OBS], role=batch[ROLE])
+            out = forward(networks[module], targets[module], batch[OBS], batch[NEXT_OBS], role=batch[ROLE])
             loss, priority, stats[module] = dqn_loss(batch, out["q"], out["q_next"], out["q_target_next"],
                                                      safety_logits=out.get("safety_logits"), **self.loss_weights)
             optimizer = self.optimizers[module]

@@ -20,6 +20,7 @@ import copy
 import json
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -31,15 +32,32 @@ from formation.policy import Policy, export
 from formation.recipe.collect import Collector, epsilon_at
 from formation.recipe.config import RunConfig
 from formation.recipe.learn import Learner
+from formation.recipe.qnet import tied
 from formation.recipe.replay import FrameReplay
 from formation.recipe.team import module_of_agent, network_specs, replay_frame_shape
+
+
+@dataclass
+class Game:
+    """One game the team plays and learns from (a run plays one, or each of its ``games``): its run, rollouts,
+    replay, and the team's networks and target networks reading its board (the weights are every game's)."""
+
+    run: RunConfig
+    collector: Collector
+    replay: FrameReplay
+    networks: dict[str, torch.nn.Module]
+    targets: dict[str, torch.nn.Module]
+
+    @property
+    def name(self) -> str:
+        return f"setting{self.run.game.setting}_followers{self.run.game.n_followers}"
 
 
 def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], None] = print,
           record: dict | None = None) -> dict:
     """Train the team of ``run`` for ``train.total_env_steps`` env steps; the final greedy evaluation's summary
-    (``formation.evaluate.play_greedy``). With ``out``, the run folder described above; ``record`` joins the
-    card's training section (the CLI's hardware and commit)."""
+    (``formation.evaluate.play_greedy``; with ``games``, each game's and their mean success). With ``out``, the run
+    folder described above; ``record`` joins the card's training section (the CLI's hardware and commit)."""
     # -- boilerplate: seeding and the run folder
     t = run.train
     torch.manual_seed(t.seed)
@@ -50,37 +68,46 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
         (out / "config.yaml").write_text(yaml.safe_dump(run.to_dict(), sort_keys=False))
         metrics = (out / "metrics.jsonl").open("w")
 
-    # -- the team's networks, its games, the replay and the learner
-    specs = network_specs(run)
-    networks = {module: spec.build() for module, spec in specs.items()}
-    collector = Collector(run)
-    replay = FrameReplay(t.replay_capacity, replay_frame_shape(run), 1 + run.game.n_followers, run.game.frame_stack,
-                         seed=t.seed, prioritized=t.prioritized)
-    learner = Learner(run, networks)
+    # -- the team's networks, the learner, and each game's rollouts and replay (a share of the capacity)
+    kinds = run.kinds()
+    networks = {module: spec.build() for module, spec in network_specs(kinds[0]).items()}
+    learner = Learner(kinds[0], networks)
+    games = []
+    for index, kind in enumerate(kinds):
+        specs = network_specs(kind)
+        replay = FrameReplay(t.replay_capacity // len(kinds), replay_frame_shape(kind), 1 + kind.game.n_followers,
+                             kind.game.frame_stack, seed=t.seed + index, prioritized=t.prioritized)
+        games.append(Game(kind, Collector(kind, index), replay,
+                          {m: tied(specs[m], net) for m, net in networks.items()} if index else networks,
+                          {m: tied(specs[m], net) for m, net in learner.targets.items()} if index else learner.targets))
     steps_per_collect = run.resources.games_per_actor * t.steps_per_sample
     env_steps, next_eval, started, episodes = 0, run.eval.every_env_steps, time.perf_counter(), []
 
     while env_steps < t.total_env_steps:
         # -- collect: every game plays steps_per_sample steps, epsilon-greedily (the teacher labels them, if any)
-        records, ended = collector.collect(networks, t.steps_per_sample, env_steps)
-        replay.add(records)
-        env_steps += steps_per_collect
-        episodes += ended
+        for game in games:
+            records, ended = game.collector.collect(game.networks, t.steps_per_sample, env_steps)
+            game.replay.add(records)
+            env_steps += steps_per_collect
+            episodes += ended
 
-        # -- learn: the updates the replay ratio owes (updates per env step), from learning_starts on
-        if replay.size >= max(t.learning_starts, t.batch_size):
+        # -- learn: the updates the replay ratio owes (updates per env step), from learning_starts on, each on a
+        # sample of the next game in turn
+        if all(g.replay.size >= max(t.learning_starts // len(games), t.batch_size) for g in games):
             while learner.updates < t.replay_ratio * env_steps:
-                sample = replay.sample(t.batch_size, n_step=t.n_step, gamma=t.gamma)
-                priorities, stats = learner.update(sample)
+                game = games[learner.updates % len(games)]
+                sample = game.replay.sample(t.batch_size, n_step=t.n_step, gamma=t.gamma)
+                priorities, stats = learner.update(sample, (module_of_agent(game.run), game.networks, game.targets))
                 if t.prioritized:
-                    replay.update_priorities(sample["ids"], priorities)
+                    game.replay.update_priorities(sample["ids"], priorities)
 
         # -- evaluate: greedy play on held-out scenarios, every eval.every_env_steps
         if env_steps >= next_eval or env_steps >= t.total_env_steps:
-            summary = evaluate(run, networks)
+            summary = evaluate_games(games)
             row = {"env_steps": env_steps, "learner_updates": learner.updates,
                    "seconds": time.perf_counter() - started, "epsilon": epsilon_at(env_steps, t),
-                   **{f"greedy/{k}": summary[k] for k in ("success", "steps_success_mean")},
+                   **{f"greedy/{k}": summary[k] for k in ("success", "steps_success_mean") if k in summary},
+                   **{f"greedy/{name}/success": s["success"] for name, s in summary.get("games", {}).items()},
                    **explored(episodes)}
             if learner.updates:
                 row.update({f"learner/{m}/{k}": v for m, values in stats.items() for k, v in values.items()})
@@ -97,7 +124,7 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
         metrics.close()
         (out / "result.json").write_text(json.dumps({"env_steps": env_steps, "seed": run.eval.seed,
                                                      "greedy": summary}, indent=2))
-        team = policy_of(run, networks, source=str(out), env_steps=env_steps)
+        team = policy_of(kinds[0], networks, source=str(out), env_steps=env_steps)
         team.training = {"config": run.to_dict(), "env_steps": env_steps, "learner_updates": learner.updates,
                          "wall_seconds": round(time.perf_counter() - started, 3),
                          "evaluation": {"env_steps": env_steps, "seed": run.eval.seed, "greedy": summary},
@@ -117,6 +144,14 @@ def evaluate(run: RunConfig, networks: dict[str, torch.nn.Module]) -> dict:
     """Greedy play of the team as it is now on ``eval.episodes`` held-out scenarios: the summary rates."""
     team = policy_of(run, networks, source="training")
     return play_greedy(run.game, team.act_batch, run.eval.episodes, run.eval.seed)["summary"]
+
+
+def evaluate_games(games: list[Game]) -> dict:
+    """``evaluate`` of one game; of several, each game's summary (``games``, by name) and their mean success."""
+    if len(games) == 1:
+        return evaluate(games[0].run, games[0].networks)
+    each = {g.name: evaluate(g.run, g.networks) for g in games}
+    return {"success": float(np.mean([s["success"] for s in each.values()])), "games": each}
 
 
 def explored(episodes: list[dict]) -> dict[str, float]:

@@ -428,6 +428,17 @@ class DuelingQNetwork(nn.Module):
         return self.safety(self.features(x) if features is None else features)
 
 
+def tied(spec: NetworkSpec, shared: DuelingQNetwork) -> DuelingQNetwork:
+    """A network of ``spec`` whose layers with weights are ``shared``'s own, not copies: the same team reading
+    another board (``spec.cells``; the leader's window makes every board's input alike), so that an update on
+    either's batch trains both."""
+    net = spec.build()
+    for name, layers in shared.named_children():
+        if any(True for _ in layers.parameters()):
+            setattr(net, name, layers)
+    return net
+
+
 def outputs_of(networks: dict[str, DuelingQNetwork], obs: torch.Tensor, prepared: dict | None = None
                ) -> tuple[dict[str, torch.Tensor], torch.Tensor | None]:
     """Each network's Q-values for the same observations, and the probability (N, 4, 4) its safety heads

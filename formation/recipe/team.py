@@ -49,9 +49,11 @@ def answers_leader(run: RunConfig, module: str) -> bool:
 
 def roles_of(run: RunConfig, module: str) -> int:
     """The roles of ``module``'s network (``NetworkSpec.roles``): the number of its agents where several share it
-    (the followers of a team of two or more), 0 for a network of one agent. RLlib's own DQN (``train.path: stock``)
-    gives its modules no role input."""
+    (the followers of a team of two or more; with a ``games`` section, of its largest team), 0 for a network of one
+    agent. RLlib's own DQN (``train.path: stock``) gives its modules no role input."""
     agents = module_of_agent(run).count(module)
+    if run.games is not None and agents:
+        agents = max(run.games.followers) if module != module_of_agent(run)[0] else 1
     return agents if agents > 1 and run.train.path == "formation" else 0
 
 
