@@ -227,13 +227,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.veto_fallback is not None:
         policy = policy.with_veto_fallback(args.veto_fallback)
     trained_on = policy.game
-    if args.setting is not None or args.followers is not None:
-        try:
-            policy = policy.for_game(setting=args.setting, n_followers=args.followers)
-        except ConfigError as err:
-            about_team = str(err).startswith(("game.n_followers", "n_followers", "follower_starts"))
-            flag = "--followers" if about_team or args.setting is None else "--setting"
-            raise ConfigError(f"{flag}: {err}") from None
+    policy = _playing(policy, args.setting, args.followers)
     episodes = args.episodes or policy.eval_settings["episodes"]
     seed = policy.eval_settings["seed"] if args.seed is None else args.seed
     workers = args.workers or min(os.cpu_count() or 1, 8)
@@ -297,6 +291,19 @@ def _check_report_path(given: str) -> None:
                           f"earlier report (nothing else is overwritten)")
 
 
+def _playing(policy, setting: int | None, followers: int | None):
+    """``policy`` playing ``--setting`` and ``--followers`` (``Policy.for_game``; None: its own), or a one-line
+    error naming the flag."""
+    if setting is None and followers is None:
+        return policy
+    try:
+        return policy.for_game(setting=setting, n_followers=followers)
+    except ConfigError as err:
+        about_team = str(err).startswith(("game.n_followers", "n_followers", "follower_starts"))
+        flag = "--followers" if about_team or setting is None else "--setting"
+        raise ConfigError(f"{flag}: {err}") from None
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     """The paper's pictures of a trained policy: episodes.gif, paths.png, q_values.png, training.png."""
     from formation.pictures import render
@@ -311,7 +318,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = _picture_folder(args.out)
     path = local_run_folder(args.checkpoint)
     check_outside(out, _source(path), "--out", given=args.checkpoint)
-    policy = load(path)
+    policy = _playing(load(path), args.setting, args.followers)
     run_dir = path if (path / "config.yaml").is_file() else path.parent
     seed = policy.eval_settings["seed"] if args.seed is None else args.seed
     with writing_into(out) as folder:  # pictures of the same names, drawn before, are replaced whole
@@ -415,6 +422,9 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--out", required=True, help="output folder for the pictures")
     render.add_argument("--episodes", type=int, default=4, help="greedy episodes to show (default 4)")
     render.add_argument("--seed", type=int, help="scenario seed (default: the run's eval.seed, or 1000000)")
+    render.add_argument("--setting", type=int, help="play named setting K (default: the policy's own game)")
+    render.add_argument("--followers", type=int, metavar="N", help="play a team of N followers (default: the "
+                        "policy's own)")
     render.set_defaults(run=cmd_render)
     return parser
 

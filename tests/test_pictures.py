@@ -120,3 +120,15 @@ def test_bad_input_is_one_line_and_a_failure(args, tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith("formation: error:") and "\n" not in err
     assert not (tmp_path / "x").exists()
+
+
+def test_render_draws_another_game_the_policy_plays(run_dir, tmp_path, capfd):
+    out = tmp_path / "setting2"
+    assert main(["render", str(run_dir), "--out", str(out), "--episodes", "1", "--setting", "2"]) == 0
+    game = load(run_dir).for_game(setting=2).game
+    with Image.open(out / "paths.png") as image:  # drawn on setting 2's 25x25 board, not the 9x9 one trained on
+        assert image.size == pictures.paths_size(game, 1) != pictures.paths_size(load(run_dir).game, 1)
+    capfd.readouterr()
+    assert main(["render", str(run_dir), "--out", str(out), "--followers", "2"]) != 0
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--followers: " in err[0] and "plays 1 to 1" in err[0]
