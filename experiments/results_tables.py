@@ -191,6 +191,27 @@ def reproduced_table() -> None:
         print("| " + " | ".join(cells) + " |")
 
 
+def teams_table() -> None:
+    """The generalist team on each of its games (`generalist/settingK_followersN.json`, `formation evaluate
+    policies/generalist --setting K --followers N`): setting x team size."""
+    folder = RESULTS / "generalist"
+    if not any(folder.glob("*.json")):
+        return
+    print("\n| setting | followers | success (95% CI) | leader collision | follower collision | formation break | "
+          "time-out | steps: ours / planner |\n" + "| --- " * 8 + "|")
+    for path in sorted(folder.glob("setting*_followers*.json")):
+        r = json.loads(path.read_text())
+        reward_only(r, str(path))
+        low, high = r["success_ci95"]
+        steps = steps_cell(r)
+        if not r["planner"].get("planner_exact", True) and r["steps_success_mean"] is not None:
+            steps = f"{r['steps_success_mean']:.2f} / at least {r['planner']['planner_steps_on_successes_mean']:.2f}"
+        cells = [str(r["setting"]), str(r["followers"]), f"{pct(r['success'])} ({pct(low)[:-1]}-{pct(high)})",
+                 pct(r["leader_collision"]), pct(r["follower_collision"]), pct(r["formation_broken"]),
+                 pct(r["timeout"]), steps]
+        print("| " + " | ".join(cells) + " |")
+
+
 def readme_table() -> None:
     """README.md's four rows: each setting's shipped teams on the test scenarios, from the reward alone (the
     default recipe) and with the teacher."""
@@ -234,6 +255,7 @@ def main() -> None:
     print()
     reward_only_tables()
     reproduced_table()
+    teams_table()
 
 
 if __name__ == "__main__":

@@ -128,3 +128,23 @@ def test_a_team_of_many_games_is_refused_in_one_line_where_it_cannot_train(tmp_p
         RunConfig.from_dict({"games": {"followers": [5]}})
     with pytest.raises(ConfigError, match="^games: every board is read alike only through the leader's window"):
         RunConfig.from_dict({"games": {}, "train": {"leader_window": None}})
+
+
+def test_a_run_stopped_after_an_evaluation_keeps_the_team_it_evaluated(tmp_path):
+    from formation.policy import load
+    from formation.recipe.loop import train
+
+    run = RunConfig.load(SMALL, {"train.total_env_steps": 1280, "train.learning_starts": 320,
+                                 "eval.every_env_steps": 640, "eval.episodes": 10})
+    out = tmp_path / "stopped"
+
+    def stop(line: str) -> None:  # Ctrl-C, right after the first evaluation
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(run, out, say=stop)
+    first = json.loads((out / "metrics.jsonl").read_text().splitlines()[0])
+    team = load(out)
+    assert team.env_steps == first["env_steps"] < run.train.total_env_steps
+    assert team.training["evaluation"]["greedy"]["success"] == first["greedy/success"]
+    assert not (out / "result.json").exists()

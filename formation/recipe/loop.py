@@ -10,8 +10,9 @@ It runs the very functions of the distributed path (the rollout actors' ``Collec
 ``FrameReplay``, the learner's ``Learner``: ``forward`` and ``dqn_loss``), one after the other, on one core: the
 reference a reader can follow, and what the learning tests train with. The folder it writes holds ``config.yaml``,
 ``metrics.jsonl`` (a line per evaluation), ``result.json`` (the final greedy evaluation) and the team as an export
-(``policy.json``, ``<module>.pt``), which ``formation evaluate DIR`` and ``formation.policy.load(DIR)`` read. It
-keeps no checkpoints and cannot resume: a long run is a Ray run (``formation train CONFIG``).
+(``policy.json``, ``<module>.pt``; written at every evaluation, so a stopped run leaves the team it last
+evaluated), which ``formation evaluate DIR`` and ``formation.policy.load(DIR)`` read. It keeps no checkpoints and
+cannot resume: a long run is a Ray run (``formation train CONFIG``).
 """
 
 from __future__ import annotations
@@ -112,24 +113,24 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
             if learner.updates:
                 row.update({f"learner/{m}/{k}": v for m, values in stats.items() for k, v in values.items()})
             episodes = []
-            say(f"{env_steps:>9,}/{t.total_env_steps:,} env steps  greedy success {summary['success']:6.1%}  "
-                f"{env_steps / row['seconds']:6,.0f} env steps/s")
-            if out is not None:
+            if out is not None:  # the team as evaluated, so that a run stopped later still leaves it
                 metrics.write(json.dumps(row) + "\n")
                 metrics.flush()
+                team = policy_of(kinds[0], networks, source=str(out), env_steps=env_steps)
+                team.training = {"config": run.to_dict(), "env_steps": env_steps, "learner_updates": learner.updates,
+                                 "wall_seconds": round(time.perf_counter() - started, 3),
+                                 "evaluation": {"env_steps": env_steps, "seed": run.eval.seed, "greedy": summary},
+                                 **(record or {})}
+                export(team, out)
+            say(f"{env_steps:>9,}/{t.total_env_steps:,} env steps  greedy success {summary['success']:6.1%}  "
+                f"{env_steps / row['seconds']:6,.0f} env steps/s")
             next_eval += run.eval.every_env_steps
 
-    # -- boilerplate: the result and the team, as `formation export` writes it
+    # -- boilerplate: the final evaluation's result (the team is exported with it, above)
     if out is not None:
         metrics.close()
         (out / "result.json").write_text(json.dumps({"env_steps": env_steps, "seed": run.eval.seed,
                                                      "greedy": summary}, indent=2))
-        team = policy_of(kinds[0], networks, source=str(out), env_steps=env_steps)
-        team.training = {"config": run.to_dict(), "env_steps": env_steps, "learner_updates": learner.updates,
-                         "wall_seconds": round(time.perf_counter() - started, 3),
-                         "evaluation": {"env_steps": env_steps, "seed": run.eval.seed, "greedy": summary},
-                         **(record or {})}
-        export(team, out)
     return summary
 
 
