@@ -14,7 +14,8 @@ Learning from the reward alone (docs/results/reward_only/): `settingK.json` is t
 that measured what each ingredient of the reward-only recipe gained (INGREDIENTS names them). Every
 reward-only report must record a training without the planner.
 
-Prints the tables as Markdown; `--readme`, README.md's settings table.
+Prints the tables as Markdown; `--readme`, README.md's settings table; `--recipe`, docs/RECIPE.md's table of
+what each ingredient of the reward-only recipe gained.
 """
 
 from __future__ import annotations
@@ -151,7 +152,12 @@ def reward_only_tables() -> None:
                  pct(r["leader_collision"]), pct(r["follower_collision"]), pct(r["formation_broken"]),
                  pct(r["timeout"]), steps_cell(r)]
         print("| " + " | ".join(cells) + " |")
-    print("\n| training | seed | env steps | validation success (95% CI) | time-out | steps: ours / planner |\n"
+
+
+def ingredients_table() -> None:
+    """docs/RECIPE.md's table: what each ingredient of the reward-only recipe gained, on validation."""
+    folder = RESULTS / "reward_only"
+    print("| training | seed | env steps | validation success (95% CI) | time-out | steps: ours / planner |\n"
           + "| --- " * 6 + "|")
     for stem, what in INGREDIENTS.items():
         path = folder / "ingredients" / f"{stem}.json"
@@ -229,8 +235,13 @@ def readme_table() -> None:
 def main() -> None:
     args = parser(__doc__)
     args.add_argument("--readme", action="store_true", help="print README.md's settings table alone")
-    if args.parse_args().readme:
+    args.add_argument("--recipe", action="store_true", help="print docs/RECIPE.md's table of the ingredients alone")
+    given = args.parse_args()
+    if given.readme:
         readme_table()
+        return
+    if given.recipe:
+        ingredients_table()
         return
     hours = json.loads((RESULTS / "training_hours.json").read_text())
     reports = {path.stem: json.loads(path.read_text()) for path in RESULTS.glob("setting*.json")}

@@ -103,11 +103,12 @@ def test_a_page_stays_short(name: str):
 
 
 @pytest.mark.parametrize("script, page", [("experiments/results_tables.py", "docs/RESULTS.md"),
+                                          ("experiments/results_tables.py --recipe", "docs/RECIPE.md"),
                                           ("experiments/scaling_model.py", "docs/SCALING.md")])
 def test_a_pages_tables_are_those_its_script_prints(script: str, page: str):
     """Each block a script prints (from docs/results/*.json) stands verbatim in its page."""
-    printed = subprocess.run([sys.executable, script], cwd=ROOT, capture_output=True, text=True, timeout=120,
-                             check=True).stdout
+    printed = subprocess.run([sys.executable, *script.split()], cwd=ROOT, capture_output=True, text=True,
+                             timeout=120, check=True).stdout
     tables = [block.strip() for block in re.split(r"\n\s*\n", printed) if block.strip()]
     assert tables, f"{script} printed nothing"
     text = (ROOT / page).read_text(encoding="utf-8")
