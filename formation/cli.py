@@ -120,7 +120,10 @@ def _train_without_ray(args: argparse.Namespace) -> int:
         summary = train(run, out, say=lambda line: print(line, flush=True), record=record)
     except KeyboardInterrupt:
         return 130
-    print(f"greedy success {summary['success']:.1%} on {summary['episodes']} held-out scenarios; run folder {out}")
+    games = summary.get("games")
+    held = f"{summary['episodes']} held-out scenarios" if games is None else \
+        f"{run.eval.episodes} held-out scenarios of each of {len(games)} games (their mean)"
+    print(f"greedy success {summary['success']:.1%} on {held}; run folder {out}")
     return 0
 
 

@@ -75,8 +75,8 @@ def test_one_team_trains_on_several_settings_and_team_sizes_and_plays_each(tmp_p
     at once, their weights shared across boards, and the team plays each game as it was evaluated in training."""
     import torch
 
+    from formation.cli import main
     from formation.policy import load
-    from formation.recipe.loop import train
 
     run = RunConfig.from_dict({"game": {"obs_type": "pixels", "frame_stack": 2},
                                "games": {"settings": [1, 3], "followers": [1, 2]},
@@ -86,7 +86,11 @@ def test_one_team_trains_on_several_settings_and_team_sizes_and_plays_each(tmp_p
                                                                              "episodes": 4, "gif_episodes": 0}})
     out = tmp_path / "generalist"
     weights = {}
-    summary = train(run, out, say=lambda line: None)
+    config = tmp_path / "generalist.yaml"
+    config.write_text(json.dumps(run.to_dict()))  # YAML reads JSON
+    assert main(["train", str(config), "--no-ray", "--out", str(out)]) == 0
+    assert "on 4 held-out scenarios of each of 4 games (their mean); run folder" in capfd.readouterr().out
+    summary = json.loads((out / "result.json").read_text())["greedy"]
     names = {"setting1_followers1", "setting1_followers2", "setting3_followers1", "setting3_followers2"}
     assert set(summary["games"]) == names
     assert summary["success"] == np.mean([s["success"] for s in summary["games"].values()])
@@ -104,8 +108,6 @@ def test_one_team_trains_on_several_settings_and_team_sizes_and_plays_each(tmp_p
     first = weights["setting1_followers1"]
     assert all(torch.equal(first[m][k], w[m][k]) for w in weights.values() for m in w for k in w[m])
     # formation evaluate plays each of its games, and says where a game is not one of them
-    from formation.cli import main
-
     assert main(["evaluate", str(out), "--setting", "3", "--followers", "2", "--episodes", "2", "--workers", "1"]) == 0
     assert "zero-shot" not in capfd.readouterr().out
     assert main(["evaluate", str(out), "--setting", "2", "--episodes", "2", "--workers", "1"]) == 0
