@@ -55,3 +55,21 @@ def test_a_card_that_names_a_removed_option_loads_at_its_neutral_value_and_is_re
     with pytest.raises(PolicyError, match=r"policy\.json': networks\.follower\.row_scan: removed in 0\.2 \(.*"
                                           r"allowed: 0 / absent$"):
         load(folder)
+
+
+GENERALIST = sorted((REPO / "docs" / "results" / "generalist").glob("setting*_followers*.json"))
+
+
+@pytest.mark.parametrize("report", GENERALIST, ids=[p.stem for p in GENERALIST])
+def test_the_generalist_plays_each_of_its_games_from_pixels_as_reported(report):
+    """`policies/generalist`: one team for every setting and 1-3 followers (`configs/generalist.yaml`)."""
+    reported = json.loads(report.read_text())
+    policy = load(REPO / "policies" / "generalist")
+    assert reported["trained"]["planner_options"] == [] and reported["env_steps"] == policy.env_steps
+    games = policy.training["config"]["games"]
+    assert reported["setting"] in games["settings"] and reported["followers"] in games["followers"]
+    game = policy.for_game(setting=reported["setting"], n_followers=reported["followers"])
+    episodes = 20  # twelve games: the first 20 of each report's scenarios
+    summary = play_greedy(game.game, game.act_batch, episodes, reported["seed"])["summary"]
+    p = reported["success"]
+    assert summary["success"] >= p - 3 * (p * (1 - p) / episodes) ** 0.5 - 0.01, (summary, p)
