@@ -248,7 +248,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     report = evaluate_policy(policy.game, policy.act_batch, episodes, seed, workers=workers, progress=progress)
     report = {"checkpoint": str(args.checkpoint), "setting": policy.game.setting, "followers": policy.game.n_followers,
-              "trained_on": {"setting": trained_on.setting, "followers": trained_on.n_followers},
               "env_steps": policy.env_steps,
               "shield": args.shield, "veto_threshold": policy.veto_threshold if policy.learned_veto else None,
               "veto_fallback": policy.veto_fallback if policy.learned_veto else None,
@@ -261,9 +260,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if (trained := training_line(policy.training)) is not None:  # cards from before it have none: nothing
         print(trained)
     games = ((policy.training or {}).get("config") or {}).get("games")
-    trained = {(s, k) for s in games["settings"] for k in games["followers"]} if games else \
+    trained_games = {(s, k) for s in games["settings"] for k in games["followers"]} if games else \
         {(trained_on.setting, trained_on.n_followers)}
-    if (policy.game.setting, policy.game.n_followers) not in trained:
+    if (policy.game.setting, policy.game.n_followers) not in trained_games:
         what = f"settings {games['settings']} with {games['followers']} followers" if games else \
             f"setting {trained_on.setting} with {trained_on.n_followers}"
         print(f"zero-shot: playing setting {policy.game.setting} with {policy.game.n_followers} follower(s); trained "
