@@ -32,6 +32,13 @@ def pct(x: float) -> str:
     return f"{100 * x:.1f}%"
 
 
+def success_cell(r: dict, bold: bool = False) -> str:
+    """A report's success rate with its 95% interval; ``bold``: the rate in bold (a shipped team's)."""
+    low, high = r["success_ci95"]
+    rate = f"**{pct(r['success'])}**" if bold else pct(r["success"])
+    return f"{rate} ({pct(low)[:-1]}-{pct(high)})"
+
+
 def label(stem: str) -> str:
     """A report's row name: `policies/settingK` for a shipped policy, else what it was trained as."""
     setting, _, kind = stem.partition("_")
@@ -43,14 +50,13 @@ def label(stem: str) -> str:
 def one_command_row(stem: str, r: dict, shipped: dict | None) -> str:
     """A row of the one-command table: a run of `formation train configs/settingK.yaml` and its seed."""
     trained = r["trained"]
-    low, high = r["success_ci95"]
     minutes = trained["wall_seconds"] / 60
     refit = (trained["refit_seconds"] or 0.0) / 60
     steps = "none" if r["steps_success_mean"] is None else \
         f"{r['steps_success_mean']:.2f} / {r['planner']['planner_steps_on_successes_mean']:.2f}"
     ships = shipped is not None and shipped.get("trained") is not None and \
         shipped["trained"]["env_steps"] == trained["env_steps"] and shipped["trained"]["seed"] == trained["seed"]
-    cells = [str(r["setting"]), str(trained["seed"]), f"{pct(r['success'])} ({pct(low)[:-1]}-{pct(high)})",
+    cells = [str(r["setting"]), str(trained["seed"]), success_cell(r),
              pct(r["leader_collision"]), pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]),
              steps, f"{trained['env_steps']:,}", f"{minutes + refit:.1f} ({minutes:.1f} + {refit:.1f})",
              "yes" if ships else ""]
@@ -68,10 +74,8 @@ def training(hours: float | dict | None) -> str:
 
 
 def test_row(stem: str, r: dict, hours: float | dict | None) -> str:
-    low, high = r["success_ci95"]
     p = r["planner"]
-    rate = f"**{pct(r['success'])}**" if "_" not in stem else pct(r["success"])  # shipped policies in bold
-    success = f"{rate} ({pct(low)[:-1]}-{pct(high)})"
+    success = success_cell(r, bold="_" not in stem)  # shipped policies in bold
     if r["steps_success_mean"] is None:
         steps = f"none / {p['planner_steps_mean']:.2f}"
     else:
@@ -132,10 +136,13 @@ def reward_only(report: dict, name: str) -> dict:
 
 
 def steps_cell(r: dict) -> str:
-    """Steps of successes against the planner's on the same scenarios, and how much longer in percent."""
+    """Steps of successes against the planner's on the same scenarios, and how much longer in percent; against a
+    lower bound on the planner's (a team of 3-4 followers), "at least" that."""
     if r["steps_success_mean"] is None:
         return "none"
     ours, planner = r["steps_success_mean"], r["planner"]["planner_steps_on_successes_mean"]
+    if not r["planner"].get("planner_exact", True):
+        return f"{ours:.2f} / at least {planner:.2f}"
     return f"{ours:.2f} / {planner:.2f} (+{100 * (ours / planner - 1):.1f}%)"
 
 
@@ -146,9 +153,8 @@ def reward_only_tables() -> None:
     for path in sorted(folder.glob("setting*.json")):
         r = json.loads(path.read_text())
         trained = reward_only(r, str(path))
-        low, high = r["success_ci95"]
         cells = [f"`policies/reward_only/{path.stem}`", f"{r['env_steps']:,}",
-                 f"{trained['wall_seconds'] / 3600:.2f} h", f"**{pct(r['success'])}** ({pct(low)[:-1]}-{pct(high)})",
+                 f"{trained['wall_seconds'] / 3600:.2f} h", success_cell(r, bold=True),
                  pct(r["leader_collision"]), pct(r["follower_collision"]), pct(r["formation_broken"]),
                  pct(r["timeout"]), steps_cell(r)]
         print("| " + " | ".join(cells) + " |")
@@ -165,9 +171,8 @@ def ingredients_table() -> None:
             continue
         r = json.loads(path.read_text())
         trained = reward_only(r, str(path))
-        low, high = r["success_ci95"]
-        cells = [what, str(trained["seed"]), f"{r['env_steps']:,}",
-                 f"{pct(r['success'])} ({pct(low)[:-1]}-{pct(high)})", pct(r["timeout"]), steps_cell(r)]
+        cells = [what, str(trained["seed"]), f"{r['env_steps']:,}", success_cell(r), pct(r["timeout"]),
+                 steps_cell(r)]
         print("| " + " | ".join(cells) + " |")
 
 
@@ -190,9 +195,8 @@ def reproduced_table() -> None:
         setting = path.stem.partition("_")[0]
         shipped = json.loads((RESULTS / "reward_only" / "ingredients" / f"pixels_{setting}_nocompass_seed0.json")
                              .read_text())
-        low, high = r["success_ci95"]
         cells = [f"`configs/reward_only/{setting}.yaml`", str(trained["seed"]), f"{r['env_steps']:,}",
-                 f"{trained['wall_seconds'] / 60:.1f} min", f"{pct(r['success'])} ({pct(low)[:-1]}-{pct(high)})",
+                 f"{trained['wall_seconds'] / 60:.1f} min", success_cell(r),
                  steps_cell(r), f"{pct(shipped['success'])}, {steps_cell(shipped)}"]
         print("| " + " | ".join(cells) + " |")
 
@@ -208,13 +212,8 @@ def teams_table() -> None:
     for path in sorted(folder.glob("setting*_followers*.json")):
         r = json.loads(path.read_text())
         reward_only(r, str(path))
-        low, high = r["success_ci95"]
-        steps = steps_cell(r)
-        if not r["planner"].get("planner_exact", True) and r["steps_success_mean"] is not None:
-            steps = f"{r['steps_success_mean']:.2f} / at least {r['planner']['planner_steps_on_successes_mean']:.2f}"
-        cells = [str(r["setting"]), str(r["followers"]), f"{pct(r['success'])} ({pct(low)[:-1]}-{pct(high)})",
-                 pct(r["leader_collision"]), pct(r["follower_collision"]), pct(r["formation_broken"]),
-                 pct(r["timeout"]), steps]
+        cells = [str(r["setting"]), str(r["followers"]), success_cell(r), pct(r["leader_collision"]),
+                 pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]), steps_cell(r)]
         print("| " + " | ".join(cells) + " |")
 
 
