@@ -146,12 +146,14 @@ class GameConfig:
         H, W = self.height, self.width
         c0 = W // 2 - W // 5
         k = self.n_followers
-        if self.formation == "horizontal":  # beside the leader on the bottom row, then two rows ahead
-            leader = (H - 1, c0)
+        if self.formation == "horizontal":  # beside the leader, then two rows behind it
+            # a third follower ahead of the leader would have to pass it before the destination row, so from
+            # three followers on the leader starts two rows up and the others stand behind it
+            leader = (H - 1, c0) if k <= 2 else (H - 3, c0)
             followers = {1: ((H - 1, c0 - 2),),
                          2: ((H - 1, c0 - 2), (H - 1, c0 + 2)),
-                         3: ((H - 1, c0 - 2), (H - 1, c0 + 2), (H - 3, c0)),
-                         4: ((H - 1, c0 - 2), (H - 1, c0 + 2), (H - 3, c0 - 2), (H - 3, c0 + 2))}
+                         3: ((H - 3, c0 - 2), (H - 3, c0 + 2), (H - 1, c0)),
+                         4: ((H - 3, c0 - 2), (H - 3, c0 + 2), (H - 1, c0 - 2), (H - 1, c0 + 2))}
         else:  # behind the leader, two rows back, then beside it
             leader = (H - 3, c0)
             followers = {1: ((H - 1, c0),),

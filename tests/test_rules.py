@@ -648,20 +648,22 @@ def test_scenario_round_trip_through_batched_game():
 @pytest.mark.parametrize("setting", [1, 2, 3, 4])
 @pytest.mark.parametrize("k", [1, 2, 3, 4])
 def test_teams_of_one_to_four_followers_start_in_formation_where_docs_game_md_puts_them(setting, k):
-    """docs/GAME.md, 'Teams of 1-4 followers': c0 = W // 2 - W // 5; the horizontal team beside the leader on the
-    bottom row, then two rows ahead; the vertical one two rows behind it, then beside it."""
+    """docs/GAME.md, 'Teams of 1-4 followers': c0 = W // 2 - W // 5; the horizontal team beside the leader, then
+    two rows behind it (the leader two rows up from three followers on); the vertical one two rows behind it, then
+    beside it. No follower starts ahead of the leader."""
     config = GameConfig.from_setting(setting, n_followers=k)
     H, c0 = config.height, config.width // 2 - config.width // 5
     leader, followers = config.starts
     if config.formation == "horizontal":
-        expected = (H - 1, c0), {1: [(H - 1, c0 - 2)], 2: [(H - 1, c0 - 2), (H - 1, c0 + 2)],
-                                 3: [(H - 1, c0 - 2), (H - 1, c0 + 2), (H - 3, c0)],
-                                 4: [(H - 1, c0 - 2), (H - 1, c0 + 2), (H - 3, c0 - 2), (H - 3, c0 + 2)]}[k]
+        expected = {1: ((H - 1, c0), [(H - 1, c0 - 2)]), 2: ((H - 1, c0), [(H - 1, c0 - 2), (H - 1, c0 + 2)]),
+                    3: ((H - 3, c0), [(H - 3, c0 - 2), (H - 3, c0 + 2), (H - 1, c0)]),
+                    4: ((H - 3, c0), [(H - 3, c0 - 2), (H - 3, c0 + 2), (H - 1, c0 - 2), (H - 1, c0 + 2)])}[k]
     else:
         expected = (H - 3, c0), {1: [(H - 1, c0)], 2: [(H - 1, c0 - 1), (H - 1, c0 + 1)],
                                  3: [(H - 1, c0 - 2), (H - 1, c0), (H - 1, c0 + 2)],
                                  4: [(H - 1, c0 - 1), (H - 1, c0 + 1), (H - 3, c0 - 2), (H - 3, c0 + 2)]}[k]
     assert (leader, list(followers)) == expected
+    assert all(row >= leader[0] for row, _ in followers)
     game = BatchedGame(config, batch_size=8, seed=setting)
     game.reset()
     positions = game.positions  # (games, agents, 2)
