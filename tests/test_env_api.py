@@ -189,10 +189,10 @@ def test_seeded_states_repeat():
 def test_versioned_name_and_card():
     env = fenv.parallel_env(1)
     name = env.metadata["name"]
-    assert name == "formation_v1"
+    assert name == "formation_v2"
     assert env.metadata["render_modes"] == ["rgb_array"]
     doc = pettingzoo_card.__doc__
-    assert f"``{name}``" in doc and "v1:" in doc and "state shape" in doc and "parallel API" in doc
+    assert f"``{name}``" in doc and "v2:" in doc and "v1:" in doc and "state shape" in doc and "parallel API" in doc
     assert fenv.env(1).metadata["name"] == name
 
 

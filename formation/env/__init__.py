@@ -1,4 +1,4 @@
-"""Views of the game for RL libraries: PettingZoo's ``formation_v1`` (parallel and AEC; its card is
+"""Views of the game for RL libraries: PettingZoo's ``formation_v2`` (parallel and AEC; its card is
 the docstring of ``formation.env.pettingzoo``). RLlib's ``MultiAgentEnv`` is ``formation.rllib.env``: nothing
 here imports Ray."""
 

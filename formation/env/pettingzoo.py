@@ -1,4 +1,4 @@
-"""Formation, the PettingZoo environment (``formation_v1``).
+"""Formation, the PettingZoo environment (``formation_v2``).
 
 | | |
 | --- | --- |
@@ -14,7 +14,7 @@
 | state shape | ``(84, 84, 3)``: the present screen; with ``obs_type="grid"``: ``(H, W, 4)``, the present grid |
 | state values | ``uint8`` in ``[0, 255]``; grid: ``[0, 1]`` |
 | render modes | ``None``, ``"rgb_array"`` (the present screen whatever the observation type) |
-| rules | ``docs/GAME.md`` (rules v1) |
+| rules | ``docs/GAME.md`` (rules v2) |
 
 Every agent observes the same full screen. ``state()`` is the global state as one frame of the
 observation type, unstacked: the screen the renderer draws for the present game (pixels), or its
@@ -33,6 +33,8 @@ distance to the leader; the leader's is the distance to its farthest follower), 
 ``success``, ``steps``.
 
 Version history:
+* v2: horizontal teams of 3 and 4 followers start beside and behind the leader, which starts two rows up
+  (rules v2); every other game as in v1.
 * v1: ``state()`` and ``state_space`` (the present screen or grid); the same game (rules v1); default starts
   for teams of 3 and 4 followers.
 * v0: initial release, rules v1.
@@ -51,7 +53,7 @@ from formation.game import BatchedGame, Observer, ScreenRenderer
 
 
 class FormationParallelEnv(ParallelEnv):
-    metadata = {"name": "formation_v1", "render_modes": ["rgb_array"], "render_fps": 8,
+    metadata = {"name": "formation_v2", "render_modes": ["rgb_array"], "render_fps": 8,
                 "is_parallelizable": True}
 
     def __init__(self, config: GameConfig | None = None, render_mode: str | None = None):

@@ -1,4 +1,4 @@
-"""The rules of the formation game (``docs/GAME.md``, rules v1), stepping a batch of games at once.
+"""The rules of the formation game (``docs/GAME.md``, rules v2), stepping a batch of games at once.
 
 This is the only implementation of the rules: the PettingZoo and RLlib views, the planner's
 checks and the training rollouts all step this class. State and per-step results live in numpy
