@@ -230,7 +230,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     if args.veto_fallback is not None:
         policy = policy.with_veto_fallback(args.veto_fallback)
     trained_on = policy.game
-    policy = _playing(policy, args.setting, args.followers)
+    changes = parse_overrides(args.set)
+    policy = _playing(policy, args.setting, args.followers, changes)
     episodes = args.episodes or policy.eval_settings["episodes"]
     seed = policy.eval_settings["seed"] if args.seed is None else args.seed
     workers = args.workers or min(os.cpu_count() or 1, 8)
@@ -248,7 +249,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     report = evaluate_policy(policy.game, policy.act_batch, episodes, seed, workers=workers, progress=progress)
     report = {"checkpoint": str(args.checkpoint), "setting": policy.game.setting, "followers": policy.game.n_followers,
-              "env_steps": policy.env_steps,
+              "game_changes": changes, "env_steps": policy.env_steps,
               "shield": args.shield, "veto_threshold": policy.veto_threshold if policy.learned_veto else None,
               "veto_fallback": policy.veto_fallback if policy.learned_veto else None,
               "trained": how_trained(policy), **report}
@@ -262,11 +263,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     games = ((policy.training or {}).get("config") or {}).get("games")
     trained_games = {(s, k) for s in games["settings"] for k in games["followers"]} if games else \
         {(trained_on.setting, trained_on.n_followers)}
-    if (policy.game.setting, policy.game.n_followers) not in trained_games:
+    if (policy.game.setting, policy.game.n_followers) not in trained_games or changes:
         what = f"settings {games['settings']} with {games['followers']} followers" if games else \
             f"setting {trained_on.setting} with {trained_on.n_followers}"
-        print(f"zero-shot: playing setting {policy.game.setting} with {policy.game.n_followers} follower(s); trained "
-              f"on {what}")
+        changed = "".join(f", {key}={value}" for key, value in changes.items())
+        print(f"zero-shot: playing setting {policy.game.setting} with {policy.game.n_followers} follower(s){changed}; "
+              f"trained on {what}")
     print(format_report(report))
     if args.json:
         write_text_whole(args.json, json.dumps(report, indent=2) + "\n")
@@ -293,16 +295,29 @@ def _check_report_path(given: str) -> None:
                           f"earlier report (nothing else is overwritten)")
 
 
-def _playing(policy, setting: int | None, followers: int | None):
-    """``policy`` playing ``--setting`` and ``--followers`` (``Policy.for_game``; None: its own), or a one-line
-    error naming the flag."""
-    if setting is None and followers is None:
+def _playing(policy, setting: int | None, followers: int | None, changes: dict[str, Any] | None = None):
+    """``policy`` playing ``--setting`` and ``--followers`` (``Policy.for_game``; None: its own) with the game's
+    fields ``--set`` changes, or a one-line error naming the flag."""
+    changes = changes or {}
+    for key, flag in (("setting", "--setting"), ("n_followers", "--followers")):
+        if key in changes:
+            raise ConfigError(f"--set {key}: is not allowed; allowed: {flag}")
+    if setting is None and followers is None and not changes:
         return policy
     try:
-        return policy.for_game(setting=setting, n_followers=followers)
+        game = policy.game.variant(setting, followers)
     except ConfigError as err:
-        about_team = str(err).startswith(("game.n_followers", "n_followers", "follower_starts"))
-        flag = "--followers" if about_team or setting is None else "--setting"
+        about_team = str(err).startswith(("n_followers", "follower_starts"))
+        raise ConfigError(f"{'--followers' if about_team or setting is None else '--setting'}: {err}") from None
+    try:
+        game = game.replace(**changes)
+    except ConfigError as err:
+        raise ConfigError(f"--set {err}") from None
+    try:
+        return policy.for_game(game)
+    except ConfigError as err:
+        about_team = str(err).startswith("game.n_followers")
+        flag = "--followers" if about_team else "--setting" if setting is not None else "--set"
         raise ConfigError(f"{flag}: {err}") from None
 
 
@@ -320,7 +335,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = _picture_folder(args.out)
     path = local_run_folder(args.checkpoint)
     check_outside(out, _source(path), "--out", given=args.checkpoint)
-    policy = _playing(load(path), args.setting, args.followers)
+    policy = _playing(load(path), args.setting, args.followers, parse_overrides(args.set))
     run_dir = path if (path / "config.yaml").is_file() else path.parent
     seed = policy.eval_settings["seed"] if args.seed is None else args.seed
     with writing_into(out) as folder:  # pictures of the same names, drawn before, are replaced whole
@@ -383,6 +398,9 @@ def build_parser() -> argparse.ArgumentParser:
                           help="play named setting K (default: the policy's own game)")
     evaluate.add_argument("--followers", type=int, metavar="N",
                           help="play a team of N followers (default: the policy's own)")
+    evaluate.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                          help="play the game with a field changed (docs/CONFIG.md, section game), e.g. --set "
+                               "n_obstacles=6 or --set obstacle_speeds=[3]")
     evaluate.add_argument("--workers", type=int, help="processes for the planner (default: the CPU cores, up to 8)")
     evaluate.add_argument("--json", metavar="PATH", help="also write the numbers as JSON")
     evaluate.add_argument("--shield", type=int, default=0, metavar="STEPS",
@@ -427,6 +445,8 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--setting", type=int, help="play named setting K (default: the policy's own game)")
     render.add_argument("--followers", type=int, metavar="N", help="play a team of N followers (default: the "
                         "policy's own)")
+    render.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="play the game with a field changed, as formation evaluate --set")
     render.set_defaults(run=cmd_render)
     return parser
 

@@ -132,3 +132,6 @@ def test_render_draws_another_game_the_policy_plays(run_dir, tmp_path, capfd):
     assert main(["render", str(run_dir), "--out", str(out), "--followers", "2"]) != 0
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--followers: " in err[0] and "plays 1 to 1" in err[0]
+    assert main(["render", str(run_dir), "--out", str(out), "--set", "n_obstacles=99"]) != 0
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--set n_obstacles: 99 is not allowed" in err[0]

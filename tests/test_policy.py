@@ -12,6 +12,7 @@ import pytest
 from formation.cli import main
 from formation.config import ConfigError
 from formation.env import parallel_env
+from formation.game import BatchedGame
 from formation.evaluate import compare_with_planner, planner_paths, planner_reference, play_greedy, replay_paths
 from formation.policy import RL_MODULES, PolicyError, load
 from formation.recipe.config import RunConfig
@@ -171,6 +172,12 @@ def test_a_game_the_policy_cannot_play_is_one_line_naming_the_flag(run_dir, capf
     assert "error: --followers: " in line and "plays 1 to 1" in line
     line = _one_line_error(capfd, main(["evaluate", str(run_dir), "--followers", "0"]))
     assert "error: --followers: " in line and "n_followers" in line
+    line = _one_line_error(capfd, main(["evaluate", str(run_dir), "--set", "n_obstacles=99"]))
+    assert "error: --set n_obstacles: 99 is not allowed; allowed: 0.." in line
+    line = _one_line_error(capfd, main(["evaluate", str(run_dir), "--set", "n_followers=2"]))
+    assert line.endswith("error: --set n_followers: is not allowed; allowed: --followers")
+    line = _one_line_error(capfd, main(["evaluate", str(run_dir), "--set", "obs_type=pixels"]))
+    assert "error: --set: game.obs_type: 'pixels' is not allowed; this policy reads 'grid'" in line
 
 
 def test_a_policy_that_looks_through_the_leaders_window_plays_another_board(export_dir, capfd):
@@ -193,6 +200,21 @@ def test_a_policy_that_looks_through_the_leaders_window_plays_another_board(expo
     assert main(["evaluate", str(export_dir), "--setting", "2", "--episodes", "3", "--workers", "1"]) == 0
     out = capfd.readouterr().out
     assert "zero-shot: playing setting 2 with 1 follower(s); trained on setting None with 1" in out
+
+
+def test_evaluate_plays_unseen_obstacles_with_set_and_says_so(export_dir, tmp_path, capfd):
+    """Zero-shot play with more and faster obstacles than in training: ``--set`` changes the game's fields."""
+    report_path = tmp_path / "faster.json"
+    assert main(["evaluate", str(export_dir), "--set", "n_obstacles=4", "--set", "obstacle_speeds=[3]",
+                 "--episodes", "3", "--workers", "1", "--json", str(report_path)]) == 0
+    out = capfd.readouterr().out
+    assert "zero-shot: playing setting None with 1 follower(s), n_obstacles=4, obstacle_speeds=[3]" in out
+    report = json.loads(report_path.read_text())
+    assert report["game_changes"] == {"n_obstacles": 4, "obstacle_speeds": [3]} and report["episodes"] == 3
+    played = load(export_dir).for_game(load(export_dir).game.replace(n_obstacles=4, obstacle_speeds=[3])).game
+    batch = BatchedGame(played, batch_size=4, seed=0)
+    batch.reset()
+    assert batch.obstacle_speeds.shape == (4, 4) and (batch.obstacle_speeds == 3).all()
 
 
 def test_a_policy_refuses_games_its_networks_cannot_read(export_dir):
