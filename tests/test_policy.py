@@ -12,8 +12,8 @@ import pytest
 from formation.cli import main
 from formation.config import ConfigError
 from formation.env import parallel_env
-from formation.game import BatchedGame
 from formation.evaluate import compare_with_planner, planner_paths, planner_reference, play_greedy, replay_paths
+from formation.game import BatchedGame
 from formation.policy import RL_MODULES, PolicyError, load
 from formation.recipe.config import RunConfig
 
