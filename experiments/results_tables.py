@@ -14,6 +14,10 @@ Learning from the reward alone (docs/results/reward_only/): `settingK.json` is t
 that measured what each ingredient of the reward-only recipe gained (INGREDIENTS names them). Every
 reward-only report must record a training without the planner.
 
+The generalist team (docs/results/generalist/): `settingK_followersN.json`, `formation evaluate policies/generalist
+--setting K --followers N --episodes 200 --seed 3000000`, on its own games; `unseen/settingK_followersN_TAG.json`,
+the same with `--set` changing the game as TAG names (UNSEEN).
+
 Prints the tables as Markdown; `--readme`, README.md's settings table; `--recipe`, docs/RECIPE.md's table of
 what each ingredient of the reward-only recipe gained.
 """
@@ -217,6 +221,37 @@ def teams_table() -> None:
         print("| " + " | ".join(cells) + " |")
 
 
+# `generalist/unseen/settingK_followersN_TAG.json`: `formation evaluate policies/generalist --setting K --followers N
+# --set ...`, a game its training never drew; TAG names the change against the setting's own game
+UNSEEN = {"obstacles+2": "2 obstacles more", "obstacles+4": "4 obstacles more", "speeds1-3": "speeds 1-3"}
+
+
+def unseen_table() -> None:
+    """The generalist team, zero-shot, on games with more or faster obstacles than its training drew, beside its
+    own games (`generalist/settingK_followersN.json`): success with its 95% interval."""
+    folder = RESULTS / "generalist" / "unseen"
+    if not any(folder.glob("*.json")):
+        return
+    rows: dict[tuple[int, int], dict[str, dict]] = {}
+    for path in sorted(folder.glob("setting*_followers*_*.json")):
+        r = json.loads(path.read_text())
+        tag = path.stem.split("_")[-1]
+        if tag not in UNSEEN or not r.get("game_changes"):
+            raise SystemExit(f"{path}: not a report of a changed game named by one of {list(UNSEEN)}")
+        reward_only(r, str(path))
+        rows.setdefault((r["setting"], r["followers"]), {})[tag] = r
+    print("\n| setting | followers | as trained | " + " | ".join(UNSEEN.values()) + " |\n"
+          + "| --- " * (3 + len(UNSEEN)) + "|")
+    for (setting, followers), changed in sorted(rows.items()):
+        own = json.loads((RESULTS / "generalist" / f"setting{setting}_followers{followers}.json").read_text())
+        if any(r["env_steps"] != own["env_steps"] for r in changed.values()):
+            raise SystemExit(f"generalist/unseen/setting{setting}_followers{followers}_*.json: not the team of "
+                             f"generalist/setting{setting}_followers{followers}.json (env steps differ)")
+        cells = [str(setting), str(followers), success_cell(own)]
+        cells += [success_cell(changed[tag]) if tag in changed else "not played" for tag in UNSEEN]
+        print("| " + " | ".join(cells) + " |")
+
+
 def readme_table() -> None:
     """README.md's four rows: each setting's shipped teams on the test scenarios, from the reward alone (the
     default recipe) and with the teacher."""
@@ -266,6 +301,7 @@ def main() -> None:
     reward_only_tables()
     reproduced_table()
     teams_table()
+    unseen_table()
 
 
 if __name__ == "__main__":
