@@ -15,8 +15,9 @@ that measured what each ingredient of the reward-only recipe gained (INGREDIENTS
 reward-only report must record a training without the planner.
 
 The generalist team (docs/results/generalist/): `settingK_followersN.json`, `formation evaluate policies/generalist
---setting K --followers N --episodes 200 --seed 3000000`, on its own games; `unseen/settingK_followersN_TAG.json`,
-the same with `--set` changing the game as TAG names (UNSEEN).
+--setting K --followers N --episodes 1000 --seed 2000000`, on the test scenarios of its own games;
+`validation/settingK_followersN.json`, the same on 200 validation scenarios (`--episodes 200 --seed 3000000`);
+`unseen/settingK_followersN_TAG.json`, the validation run with `--set` changing the game as TAG names (UNSEEN).
 
 Prints the tables as Markdown; `--readme`, README.md's settings table; `--recipe`, docs/RECIPE.md's table of
 what each ingredient of the reward-only recipe gained.
@@ -206,19 +207,32 @@ def reproduced_table() -> None:
 
 
 def teams_table() -> None:
-    """The generalist team on each of its games (`generalist/settingK_followersN.json`, `formation evaluate
-    policies/generalist --setting K --followers N`): setting x team size."""
+    """The generalist team on each of its games, on the test scenarios (`generalist/settingK_followersN.json`)
+    beside its validation success (`generalist/validation/`): setting x team size."""
     folder = RESULTS / "generalist"
     if not any(folder.glob("*.json")):
         return
     print("\n| setting | followers | success (95% CI) | leader collision | follower collision | formation break | "
-          "time-out | steps: ours / planner |\n" + "| --- " * 8 + "|")
+          "time-out | steps: ours / planner | validation |\n" + "| --- " * 9 + "|")
     for path in sorted(folder.glob("setting*_followers*.json")):
         r = json.loads(path.read_text())
         reward_only(r, str(path))
+        validation = same_team(r, folder / "validation" / path.name)
         cells = [str(r["setting"]), str(r["followers"]), success_cell(r), pct(r["leader_collision"]),
-                 pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]), steps_cell(r)]
+                 pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]), steps_cell(r),
+                 pct(validation["success"])]
         print("| " + " | ".join(cells) + " |")
+
+
+def same_team(report: dict, path) -> dict:
+    """The report at ``path``, once checked to be of the team of ``report`` (the same training: its env steps and
+    wall seconds)."""
+    other = json.loads(path.read_text())
+    key = [(r["env_steps"], (r.get("trained") or {}).get("wall_seconds")) for r in (report, other)]
+    if key[0] != key[1]:
+        raise SystemExit(f"{path}: not the team of the reports beside it (env steps, training seconds: {key[1]} "
+                         f"against {key[0]})")
+    return other
 
 
 # `generalist/unseen/settingK_followersN_TAG.json`: `formation evaluate policies/generalist --setting K --followers N
@@ -228,7 +242,7 @@ UNSEEN = {"obstacles+2": "2 obstacles more", "obstacles+4": "4 obstacles more", 
 
 def unseen_table() -> None:
     """The generalist team, zero-shot, on games with more or faster obstacles than its training drew, beside its
-    own games (`generalist/settingK_followersN.json`): success with its 95% interval."""
+    own games (`generalist/validation/`), all on the validation scenarios: success with its 95% interval."""
     folder = RESULTS / "generalist" / "unseen"
     if not any(folder.glob("*.json")):
         return
@@ -243,10 +257,10 @@ def unseen_table() -> None:
     print("\n| setting | followers | as trained | " + " | ".join(UNSEEN.values()) + " |\n"
           + "| --- " * (3 + len(UNSEEN)) + "|")
     for (setting, followers), changed in sorted(rows.items()):
-        own = json.loads((RESULTS / "generalist" / f"setting{setting}_followers{followers}.json").read_text())
-        if any(r["env_steps"] != own["env_steps"] for r in changed.values()):
-            raise SystemExit(f"generalist/unseen/setting{setting}_followers{followers}_*.json: not the team of "
-                             f"generalist/setting{setting}_followers{followers}.json (env steps differ)")
+        own = json.loads((RESULTS / "generalist" / "validation" / f"setting{setting}_followers{followers}.json")
+                         .read_text())
+        for tag in changed:
+            same_team(own, folder / f"setting{setting}_followers{followers}_{tag}.json")
         cells = [str(setting), str(followers), success_cell(own)]
         cells += [success_cell(changed[tag]) if tag in changed else "not played" for tag in UNSEEN]
         print("| " + " | ".join(cells) + " |")
