@@ -217,20 +217,20 @@ def teams_table() -> None:
     for path in sorted(folder.glob("setting*_followers*.json")):
         r = json.loads(path.read_text())
         reward_only(r, str(path))
-        validation = same_team(r, folder / "validation" / path.name)
+        validation = same_team(r, json.loads((folder / "validation" / path.name).read_text()),
+                               f"generalist/validation/{path.name}")
         cells = [str(r["setting"]), str(r["followers"]), success_cell(r), pct(r["leader_collision"]),
                  pct(r["follower_collision"]), pct(r["formation_broken"]), pct(r["timeout"]), steps_cell(r),
                  pct(validation["success"])]
         print("| " + " | ".join(cells) + " |")
 
 
-def same_team(report: dict, path) -> dict:
-    """The report at ``path``, once checked to be of the team of ``report`` (the same training: its env steps and
-    wall seconds)."""
-    other = json.loads(path.read_text())
+def same_team(report: dict, other: dict, name: str) -> dict:
+    """``other`` (the report ``name``), once checked to be of the team of ``report`` (the same training: its env
+    steps and wall seconds)."""
     key = [(r["env_steps"], (r.get("trained") or {}).get("wall_seconds")) for r in (report, other)]
     if key[0] != key[1]:
-        raise SystemExit(f"{path}: not the team of the reports beside it (env steps, training seconds: {key[1]} "
+        raise SystemExit(f"{name}: not the team of the reports beside it (env steps, training seconds: {key[1]} "
                          f"against {key[0]})")
     return other
 
@@ -259,8 +259,8 @@ def unseen_table() -> None:
     for (setting, followers), changed in sorted(rows.items()):
         own = json.loads((RESULTS / "generalist" / "validation" / f"setting{setting}_followers{followers}.json")
                          .read_text())
-        for tag in changed:
-            same_team(own, folder / f"setting{setting}_followers{followers}_{tag}.json")
+        for tag, r in changed.items():
+            same_team(own, r, f"generalist/unseen/setting{setting}_followers{followers}_{tag}.json")
         cells = [str(setting), str(followers), success_cell(own)]
         cells += [success_cell(changed[tag]) if tag in changed else "not played" for tag in UNSEEN]
         print("| " + " | ".join(cells) + " |")

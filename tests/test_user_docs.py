@@ -125,7 +125,7 @@ def test_the_readmes_settings_table_is_the_one_results_tables_py_prints():
         "README.md lacks the settings table as `experiments/results_tables.py --readme` prints it (rerun it and paste)")
 
 
-def test_results_tables_refuses_reports_of_another_team_beside_each_other(tmp_path: Path):
+def test_results_tables_refuses_reports_of_another_team_beside_each_other():
     """A table that sets reports side by side (test beside validation, a changed game beside its own) stops on
     a report of another team: a page cannot mix an old team's figures with a new one's."""
     sys.path.insert(0, str(ROOT / "experiments"))
@@ -134,8 +134,8 @@ def test_results_tables_refuses_reports_of_another_team_beside_each_other(tmp_pa
     finally:
         sys.path.remove(str(ROOT / "experiments"))
     mine = {"env_steps": 480768, "trained": {"wall_seconds": 3957.6}}
-    (tmp_path / "same.json").write_text('{"env_steps": 480768, "trained": {"wall_seconds": 3957.6}, "success": 0.9}')
-    (tmp_path / "older.json").write_text('{"env_steps": 480768, "trained": {"wall_seconds": 6156.0}}')
-    assert results_tables.same_team(mine, tmp_path / "same.json")["success"] == 0.9
+    same = {"env_steps": 480768, "trained": {"wall_seconds": 3957.6}, "success": 0.9}
+    older = {"env_steps": 480768, "trained": {"wall_seconds": 6156.0}}
+    assert results_tables.same_team(mine, same, "same.json")["success"] == 0.9
     with pytest.raises(SystemExit, match="older.json: not the team"):
-        results_tables.same_team(mine, tmp_path / "older.json")
+        results_tables.same_team(mine, older, "older.json")
