@@ -32,7 +32,9 @@ from __future__ import annotations
 import copy
 import dataclasses
 import json
+import os
 import pickle
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +54,8 @@ CHECKPOINT_STATE = "algorithm_state.pkl"  # the counters, among RLlib's own stat
 CHECKPOINT_CONFIG = "config.yaml"  # the run config, written with every checkpoint (FormationDQN.save_to_path)
 # a run whose config has a refit phase keeps its final team here, as an export (``formation.train``)
 REFITTED = "refitted"
+# a run folder's team of its best greedy evaluation during training, as an export (``keep_if_best``)
+BEST = "best"
 DEFAULT_EVAL = {"episodes": 200, "seed": 1_000_000}
 DEFAULT_VETO_THRESHOLD = 0.5  # what training's heads are fitted to: the better guess of safe or not
 TRAINING = "training.json"  # a run folder's training record (``formation.train.training_record``)
@@ -278,6 +282,50 @@ def export(policy: Policy, out: str | Path, half: bool = False) -> Path:
     card = {**policy.card(), "weights_dtype": "float16" if half else "float32"}
     (out / CARD).write_text(json.dumps(card, indent=2) + "\n")
     return out
+
+
+def replace_export(policy: Policy, out: str | Path, half: bool = False) -> Path:
+    """``export`` into a fresh folder beside ``out``, then put it in the place of ``out``: a reader, or a run
+    stopped meanwhile, finds the old team or the new one whole, never a mix."""
+    out = _recover_replaced(Path(out))
+    fresh, old = out.with_name(f"{out.name}.new"), out.with_name(f"{out.name}.old")
+    for leftover in (fresh, old):  # what a run stopped while replacing left
+        if leftover.exists():
+            shutil.rmtree(leftover)
+    export(policy, fresh, half=half)
+    if out.exists():
+        os.rename(out, old)
+    os.rename(fresh, out)
+    shutil.rmtree(old, ignore_errors=True)
+    return out
+
+
+def _recover_replaced(out: Path) -> Path:
+    """After a stop between the two renames of ``replace_export``, the old team is ``<out>.old``: put it back."""
+    old = out.with_name(f"{out.name}.old")
+    if old.is_dir() and not out.exists():
+        os.rename(old, out)
+    return out
+
+
+def best_success(run_dir: str | Path) -> float | None:
+    """The greedy success of the team a run keeps in ``best/`` (``keep_if_best``); None before its first."""
+    card = _json_object(_recover_replaced(Path(run_dir) / BEST) / CARD) or {}
+    greedy = ((card.get("training") or {}).get("evaluation") or {}).get("greedy") or {}
+    return greedy.get("success")
+
+
+def keep_if_best(policy: Policy, run_dir: str | Path) -> bool:
+    """Export ``policy`` to the run's ``best/`` where its training evaluation (``policy.training["evaluation"]``)
+    succeeds at least as often as the team kept there; a tie goes to the later, longer-trained team. Whether it
+    was kept. Runs of the reward alone swing by tens of points between evaluations (docs/RECIPE.md), so the
+    last team is often not the best one trained."""
+    success = policy.training["evaluation"]["greedy"]["success"]
+    best = best_success(run_dir)
+    if best is not None and success < best:
+        return False
+    replace_export(policy, Path(run_dir) / BEST)
+    return True
 
 
 def load(path: str | Path) -> Policy:

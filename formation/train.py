@@ -282,8 +282,7 @@ def refit_phase(out_dir: Path, run: RunConfig, say: Callable[[str], None]) -> di
     ``refitted/`` as an export whose card records the training, the refit and that evaluation. A refitted team
     already there is replaced only once the new one is whole. Returns the evaluation's summary."""
     from formation.evaluate import play_greedy
-    from formation.policy import REFITTED, export, load
-    from formation.storage import writing_folder
+    from formation.policy import REFITTED, load, replace_export
 
     policy = load(checkpoint_path(out_dir))
     say(f"refit: {run.refit.rounds} round(s) of {run.refit.episodes:,} games, labels over {run.refit.horizon} steps")
@@ -293,13 +292,7 @@ def refit_phase(out_dir: Path, run: RunConfig, say: Callable[[str], None]) -> di
     summary = play_greedy(policy.game, policy.act_batch, run.eval.episodes, run.eval.seed)["summary"]
     report.update(evaluation={"seed": run.eval.seed, "greedy": summary})
     report["seconds"] += time.monotonic() - clock
-    final, fresh = out_dir / REFITTED, out_dir / f"{REFITTED}.new"
-    shutil.rmtree(fresh, ignore_errors=True)  # what an interrupted refit left
-    with writing_folder(fresh) as folder:
-        export(policy, folder)
-    if final.exists():
-        shutil.rmtree(final)
-    os.rename(fresh, final)
+    final = replace_export(policy, out_dir / REFITTED)
     shutil.rmtree(out_dir / REFIT_ROUNDS, ignore_errors=True)
     say(f"refitted in {report['seconds'] / 60:.1f} min: greedy success {summary['success']:.1%} on "
         f"{summary['episodes']} held-out scenarios; the team: {final}")

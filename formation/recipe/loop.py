@@ -11,8 +11,9 @@ It runs the very functions of the distributed path (the rollout actors' ``Collec
 reference a reader can follow, and what the learning tests train with. The folder it writes holds ``config.yaml``,
 ``metrics.jsonl`` (a line per evaluation), ``result.json`` (the final greedy evaluation) and the team as an export
 (``policy.json``, ``<module>.pt``; written at every evaluation, so a stopped run leaves the team it last
-evaluated), which ``formation evaluate DIR`` and ``formation.policy.load(DIR)`` read. It keeps no checkpoints and
-cannot resume: a long run is a Ray run (``formation train CONFIG``).
+evaluated), which ``formation evaluate DIR`` and ``formation.policy.load(DIR)`` read, and in ``best/`` the team of
+the best evaluation so far (``formation.policy.keep_if_best``). It keeps no checkpoints and cannot resume: a long
+run is a Ray run (``formation train CONFIG``).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import torch
 import yaml
 
 from formation.evaluate import play_greedy
-from formation.policy import Policy, export
+from formation.policy import Policy, export, keep_if_best
 from formation.recipe.collect import Collector, epsilon_at
 from formation.recipe.config import RunConfig
 from formation.recipe.learn import Learner
@@ -112,7 +113,7 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
                    **explored(episodes)}
             if learner.updates:
                 row.update({f"learner/{m}/{k}": v for m, values in stats.items() for k, v in values.items()})
-            episodes = []
+            episodes, kept = [], False
             if out is not None:  # the team as evaluated, so that a run stopped later still leaves it
                 metrics.write(json.dumps(row) + "\n")
                 metrics.flush()
@@ -122,8 +123,9 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
                                  "evaluation": {"env_steps": env_steps, "seed": run.eval.seed, "greedy": summary},
                                  **(record or {})}
                 export(team, out)
+                kept = keep_if_best(team, out)
             say(f"{env_steps:>9,}/{t.total_env_steps:,} env steps  greedy success {summary['success']:6.1%}  "
-                f"{env_steps / row['seconds']:6,.0f} env steps/s")
+                f"{env_steps / row['seconds']:6,.0f} env steps/s" + ("  (best so far: best/)" if kept else ""))
             next_eval += run.eval.every_env_steps
 
     # -- boilerplate: the final evaluation's result (the team is exported with it, above)
