@@ -208,6 +208,8 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
 
     from tensorboardX import SummaryWriter
 
+    from formation.rllib.algorithm import modules_of
+
     writer = SummaryWriter(str(out_dir / "tb"))
     metrics_file = (out_dir / "metrics.jsonl").open("a")
     session.update(hardware=hardware(), env_steps=[algo.counters["env_steps"]] * 2)
@@ -224,7 +226,7 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
             remote.push()
 
     progress = Progress(run.train.total_env_steps)
-    iteration = 0
+    iteration, kept_at = 0, None
     started, at_start = time.perf_counter(), dict(algo.counters)
     try:
         while algo.counters["env_steps"] < run.train.total_env_steps:
@@ -238,12 +240,16 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
                     writer.add_scalar(key, value, int(row["env_steps"]))
             if not quiet:
                 progress.show(int(row["env_steps"]), algo.last_eval.get("success"), row["env_steps_per_s"])
+            if algo.last_eval_weights is not None and algo.last_eval["env_steps"] != kept_at:
+                kept_at = algo.last_eval["env_steps"]
+                keep_best(run, modules_of(run, algo.last_eval_weights), algo.last_eval, out_dir, session)
             if iteration % run.checkpoint.every_iterations == 0:
                 save(algo)
             if on_iteration is not None:
                 on_iteration(algo, row)
         final = algo.play_greedy(record=run.eval.gif_episodes)
         summary = algo.last_eval = final["summary"]
+        keep_best(run, algo.local_modules(), {**summary, "env_steps": algo.counters["env_steps"]}, out_dir, session)
         gif = write_episodes_gif(out_dir / "greedy.gif", final["screens"]) if final["screens"] else None
         (out_dir / "result.json").write_text(json.dumps({"env_steps": algo.counters["env_steps"],
                                                          "seed": run.eval.seed, "greedy": summary}, indent=2))
@@ -273,6 +279,20 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         if gif is not None:
             print(f"greedy episodes: {f'{out}/{gif.name}' if remote is not None else gif}")
     return summary
+
+
+def keep_best(run: RunConfig, modules: dict, evaluation: dict, out_dir: Path, session: dict) -> bool:
+    """The team of ``modules`` and its training ``evaluation`` into the run's ``best/`` where it is the best so
+    far (``formation.policy.keep_if_best``); its card records that evaluation, the config and this session's code."""
+    from formation.policy import keep_if_best
+    from formation.rllib.algorithm import team_of
+
+    team = team_of(run, modules, source=str(out_dir), env_steps=evaluation["env_steps"])
+    team.training = {"config": run.to_dict(), "env_steps": evaluation["env_steps"], "commit": session["commit"],
+                     "hardware": session.get("hardware"),
+                     "evaluation": {"env_steps": evaluation["env_steps"], "seed": run.eval.seed,
+                                    "greedy": {k: v for k, v in evaluation.items() if k != "env_steps"}}}
+    return keep_if_best(team, out_dir)
 
 
 # ---------------------------------------------------------------------- the refit phase

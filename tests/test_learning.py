@@ -47,6 +47,10 @@ def test_the_default_recipe_learns_the_small_board_without_ray(tmp_path):
     lines = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert [row["env_steps"] for row in lines] == sorted(row["env_steps"] for row in lines)
     assert lines[-1]["greedy/success"] == summary["success"] and lines[-1]["learner_updates"] > 0
+    best = load(out / "best")  # the team of the best evaluation (a tie: the later one)
+    top = max(row["greedy/success"] for row in lines)
+    assert best.training["evaluation"]["greedy"]["success"] == top
+    assert best.env_steps == max(row["env_steps"] for row in lines if row["greedy/success"] == top)
 
 
 @pytest.mark.parametrize("n_followers", [2, 3, 4])

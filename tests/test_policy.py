@@ -355,3 +355,40 @@ def test_followers_that_share_a_network_act_by_their_roles_through_pettingzoo_an
     np.testing.assert_array_equal(smaller.q_batch(screen)[0], again.q_batch(screen)[0, :n_followers])
     with pytest.raises(ConfigError, match=f"plays 1 to {n_followers}$|no default start for n_followers=5"):
         again.for_game(n_followers=n_followers + 1)
+
+
+def test_a_run_keeps_the_team_of_its_best_training_evaluation_which_plays_as_it_was_evaluated(run_dir):
+    """`formation train` keeps in best/ the team of the training evaluation that succeeded most (a tie: the later
+    one), as an export: it plays its held-out scenarios as that evaluation did."""
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    evaluated = {int(r["greedy/env_steps"]): r["greedy/success"] for r in rows if "greedy/env_steps" in r}
+    final = json.loads((run_dir / "result.json").read_text())
+    evaluated[final["env_steps"]] = final["greedy"]["success"]
+    best = load(run_dir / "best")
+    evaluation = best.training["evaluation"]
+    top = max(evaluated.values())
+    assert evaluation["greedy"]["success"] == top
+    assert evaluation["env_steps"] == best.env_steps == max(s for s, v in evaluated.items() if v == top)
+    assert best.training["config"] == RunConfig.load_saved(run_dir / "config.yaml").to_dict()
+    again = play_greedy(best.game, best.act_batch, best.eval_settings["episodes"], best.eval_settings["seed"])
+    assert again["summary"]["success"] == evaluation["greedy"]["success"]
+
+
+def test_the_best_team_is_replaced_only_by_one_at_least_as_good_and_never_left_half_written(export_dir, tmp_path):
+    from formation.policy import BEST, best_success, keep_if_best
+
+    def team(success: float, env_steps: int):
+        policy = load(export_dir)
+        policy.training = {"evaluation": {"env_steps": env_steps, "greedy": {"success": success}}}
+        policy.env_steps = env_steps
+        return policy
+
+    run = tmp_path / "run"
+    assert best_success(run) is None
+    assert keep_if_best(team(0.5, 100), run) and best_success(run) == 0.5
+    assert not keep_if_best(team(0.4, 200), run) and load(run / BEST).env_steps == 100
+    assert keep_if_best(team(0.5, 300), run) and load(run / BEST).env_steps == 300  # a tie: the later team
+    # stopped between the two renames: the old team is put back, and the next keeps to it
+    (run / BEST).rename(run / f"{BEST}.old")
+    assert best_success(run) == 0.5 and not (run / f"{BEST}.old").exists()
+    assert not keep_if_best(team(0.45, 400), run) and load(run / BEST).env_steps == 300

@@ -427,14 +427,18 @@ def modules_of(run: RunConfig, weights: dict) -> dict:
     return {m: multi[m] for m in multi.keys()}
 
 
-def play_team(run: RunConfig, modules: dict, episodes: int, seed: int, record: int = 0) -> dict:
-    """``formation.evaluate.play_greedy`` of the team as ``formation.policy.load`` restores it (with its safety
-    heads' veto, if any)."""
+def team_of(run: RunConfig, modules: dict, source: str = "training", env_steps: int | None = None):
+    """The greedy team of ``modules`` as ``formation.policy.load`` restores it (with its safety heads' veto, if any)."""
     from formation.policy import Policy
 
     specs = network_specs(run)
-    team = Policy(run.game, {m: modules[m].q_network for m in specs}, specs, module_of_agent(run), source="training")
-    return play_greedy(run.game, team.act_batch, episodes, seed, record=record)
+    return Policy(run.game, {m: modules[m].q_network for m in specs}, specs, module_of_agent(run), source=source,
+                  env_steps=env_steps, eval_settings={"episodes": run.eval.episodes, "seed": run.eval.seed})
+
+
+def play_team(run: RunConfig, modules: dict, episodes: int, seed: int, record: int = 0) -> dict:
+    """``formation.evaluate.play_greedy`` of the team as ``formation.policy.load`` restores it."""
+    return play_greedy(run.game, team_of(run, modules).act_batch, episodes, seed, record=record)
 
 
 # short and periodic: it shares the cores rather than waiting for one of its own; restarted if it dies (the
@@ -469,9 +473,9 @@ class GreedyEvaluationMixin:
         make_callback("on_evaluate_start", callbacks_objects=self.callbacks,
                       callbacks_functions=self.config.callbacks_on_evaluate_start,
                       kwargs=dict(algorithm=self, metrics_logger=self.metrics))
-        self._evaluation = (self.counters["env_steps"],
-                            self._evaluator.evaluate.remote(self._inference_weights(), self.run.eval.episodes,
-                                                            self.run.eval.seed))
+        weights = self._inference_weights()
+        self._evaluation = (self.counters["env_steps"], weights,
+                            self._evaluator.evaluate.remote(weights, self.run.eval.episodes, self.run.eval.seed))
 
     def _evaluation_due(self) -> bool:
         """Whether to start the next evaluation: its env steps reached, and the last one back."""
@@ -479,10 +483,11 @@ class GreedyEvaluationMixin:
 
     def _collect_evaluation(self) -> None:
         """The evaluation in flight, once it is back: ``last_eval`` keeps its summary and the env steps of the
-        weights it played (``result["evaluation"]`` reports both), then RLlib's ``on_evaluate_end`` callbacks."""
+        weights it played (``result["evaluation"]`` reports both), ``last_eval_weights`` those weights (for
+        ``formation train`` to keep the best team), then RLlib's ``on_evaluate_end`` callbacks."""
         if self._evaluation is None:
             return
-        env_steps, ref = self._evaluation
+        env_steps, weights, ref = self._evaluation
         if not ray.wait([ref], timeout=0)[0]:
             return
         self._evaluation = None
@@ -490,6 +495,7 @@ class GreedyEvaluationMixin:
             self.last_eval = {**ray.get(ref), "env_steps": env_steps}
         except ray.exceptions.RayActorError:  # it died playing: Ray restarts it for the next one
             return
+        self.last_eval_weights = weights
         make_callback("on_evaluate_end", callbacks_objects=self.callbacks,
                       callbacks_functions=self.config.callbacks_on_evaluate_end,
                       kwargs=dict(algorithm=self, metrics_logger=self.metrics,
@@ -604,7 +610,8 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         self._samples = {"sent": 0, "answered": 0}  # sample requests of this process's life
         self.last_eval: dict = {}
         self._no_episodes_yet = no_episodes_yet(run, self.config.metrics_num_episodes_for_smoothing)
-        self._evaluation = None  # (env steps of its weights, its answer) while one plays
+        self._evaluation = None  # (env steps of its weights, the weights, its answer) while one plays
+        self.last_eval_weights: dict | None = None
         self._evaluator = EvaluationActor.remote(run.to_dict())  # ready before the first evaluation is due
         self._replay_ready = False
         self._incarnations: dict[int, str] = {}  # of each replay shard, as the learner last saw it
@@ -771,6 +778,7 @@ class StockFormationDQN(GreedyEvaluationMixin, DQN):
                          "next_eval_at": self.run.eval.every_env_steps}
         self.last_eval: dict = {}
         self._evaluation, self._evaluator = None, EvaluationActor.remote(self.run.to_dict())
+        self.last_eval_weights: dict | None = None
         self._started = time.perf_counter()
         update = self.learner_group.update
 
