@@ -11,8 +11,10 @@ older than that, docs/results/training_hours.json has the hours.
 
 Learning from the reward alone (docs/results/reward_only/): `settingK.json` is the test report of the shipped
 `policies/reward_only/settingK`; `ingredients/*.json` are validation reports (`--seed 3000000`) of the runs
-that measured what each ingredient of the reward-only recipe gained (INGREDIENTS names them). Every
-reward-only report must record a training without the planner.
+that measured what each ingredient of the reward-only recipe gained (INGREDIENTS names them);
+`reproduced/settingK_seedS.json` validation reports of the config run again with `--set train.seed=S` (its last
+team; `_noray`: trained with `--no-ray`; `_best`: the run's `best/`). Every reward-only report must record a
+training without the planner.
 
 The generalist team (docs/results/generalist/): `settingK_followersN.json`, `formation evaluate policies/generalist
 --setting K --followers N --episodes 1000 --seed 2000000`, on the test scenarios of its own games;
@@ -187,23 +189,39 @@ BOARDS = {1: "25x25, 3 obstacles, side by side", 2: "25x25, 3 obstacles, one beh
 
 
 def reproduced_table() -> None:
-    """Each reward-only config run again from the config alone (`reward_only/reproduced/settingK_seedS.json`, on
-    the validation scenarios) beside the run its shipped team comes from."""
+    """Each reward-only config run again from the config alone, on the validation scenarios: per run, its last team
+    (`reward_only/reproduced/settingK_seedS[_noray].json`) and, where the run kept one, the team of its best
+    training evaluation (`settingK_seedS_noray_best.json`), beside the shipped team (`SHIPPED_VALIDATION`)."""
     folder = RESULTS / "reward_only" / "reproduced"
     if not any(folder.glob("*.json")):
         return
-    print("\n| config | seed | env steps | training | validation success (95% CI) | steps: ours / planner | "
-          "the config's earlier run (seed 0) |\n" + "| --- " * 7 + "|")
+    print("\n| config | seed | trained | last team: validation (95% CI), steps | `best/`: env steps, validation, steps | "
+          "shipped team |\n" + "| --- " * 6 + "|")
     for path in sorted(folder.glob("setting*_seed*.json")):
+        if path.stem.endswith("_best"):
+            continue
         r = json.loads(path.read_text())
         trained = reward_only(r, str(path))
         setting = path.stem.partition("_")[0]
-        shipped = json.loads((RESULTS / "reward_only" / "ingredients" / f"pixels_{setting}_nocompass_seed0.json")
-                             .read_text())
-        cells = [f"`configs/reward_only/{setting}.yaml`", str(trained["seed"]), f"{r['env_steps']:,}",
-                 f"{trained['wall_seconds'] / 60:.1f} min", success_cell(r),
-                 steps_cell(r), f"{pct(shipped['success'])}, {steps_cell(shipped)}"]
+        best_path = path.with_name(f"{path.stem}_best.json")
+        best = "not kept"
+        if best_path.exists():
+            b = json.loads(best_path.read_text())
+            reward_only(b, str(best_path))
+            best = f"{b['env_steps']:,}, {success_cell(b)}, {steps_cell(b)}"
+        shipped = json.loads((RESULTS / "reward_only" / SHIPPED_VALIDATION[setting]).read_text())
+        how = "`--no-ray`" if path.stem.endswith("_noray") else "Ray"
+        cells = [f"`configs/reward_only/{setting}.yaml`", str(trained["seed"]),
+                 f"{how}, {r['env_steps']:,} env steps, {trained['wall_seconds'] / 60:.1f} min",
+                 f"{success_cell(r)}, {steps_cell(r)}", best, pct(shipped["success"])]
         print("| " + " | ".join(cells) + " |")
+
+
+# the validation report of each shipped reward-only team (docs/results/reward_only/...)
+SHIPPED_VALIDATION = {"setting1": "ingredients/pixels_setting1_nocompass_seed0.json",
+                      "setting2": "ingredients/pixels_setting2_nocompass_seed0.json",
+                      "setting3": "reproduced/setting3_seed0.json",
+                      "setting4": "reproduced/setting4_seed1_noray_best.json"}
 
 
 def teams_table() -> None:
