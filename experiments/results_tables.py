@@ -195,8 +195,8 @@ def reproduced_table() -> None:
     folder = RESULTS / "reward_only" / "reproduced"
     if not any(folder.glob("*.json")):
         return
-    print("\n| config | seed | trained | last team: validation (95% CI), steps | `best/`: env steps, validation, steps | "
-          "shipped team |\n" + "| --- " * 6 + "|")
+    print("\n| config | seed | trained | last team: validation (95% CI), steps | "
+          "`best/`: env steps, validation, steps | shipped team |\n" + "| --- " * 6 + "|")
     for path in sorted(folder.glob("setting*_seed*.json")):
         if path.stem.endswith("_best"):
             continue
