@@ -218,7 +218,7 @@ def reproduced_table() -> None:
 
 
 # the validation report of each shipped reward-only team (docs/results/reward_only/...)
-SHIPPED_VALIDATION = {"setting1": "ingredients/pixels_setting1_nocompass_seed0.json",
+SHIPPED_VALIDATION = {"setting1": "reproduced/setting1_seed0_noray_best.json",
                       "setting2": "ingredients/pixels_setting2_nocompass_seed0.json",
                       "setting3": "reproduced/setting3_seed1_noray_best.json",
                       "setting4": "reproduced/setting4_seed1_noray_best.json"}
