@@ -208,7 +208,7 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
 
     from tensorboardX import SummaryWriter
 
-    from formation.rllib.algorithm import modules_of
+    from formation.rllib.algorithm import modules_of, play_team
 
     writer = SummaryWriter(str(out_dir / "tb"))
     metrics_file = (out_dir / "metrics.jsonl").open("a")
@@ -247,9 +247,10 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
                 save(algo)
             if on_iteration is not None:
                 on_iteration(algo, row)
-        final = algo.play_greedy(record=run.eval.gif_episodes)
+        modules = algo.local_modules()  # the final team: evaluated, and perhaps the best
+        final = play_team(run, modules, run.eval.episodes, run.eval.seed, record=run.eval.gif_episodes)
         summary = algo.last_eval = final["summary"]
-        keep_best(run, algo.local_modules(), {**summary, "env_steps": algo.counters["env_steps"]}, out_dir, session)
+        keep_best(run, modules, {**summary, "env_steps": algo.counters["env_steps"]}, out_dir, session)
         gif = write_episodes_gif(out_dir / "greedy.gif", final["screens"]) if final["screens"] else None
         (out_dir / "result.json").write_text(json.dumps({"env_steps": algo.counters["env_steps"],
                                                          "seed": run.eval.seed, "greedy": summary}, indent=2))
