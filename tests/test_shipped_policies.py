@@ -38,6 +38,23 @@ def test_a_shipped_policy_plays_its_setting_from_pixels_as_reported(family, sett
     assert summary["success"] >= max(0.3, p - 3 * (p * (1 - p) / EPISODES) ** 0.5 - 0.01), (summary, p)
 
 
+
+# every shipped team and the config file that makes it
+MADE_BY = [(f"policies/{family}/setting{k}".replace("//", "/"), f"configs/{family}/setting{k}.yaml".replace("//", "/"))
+           for family, k in SHIPPED] + [("policies/generalist", "configs/generalist.yaml")]
+
+
+@pytest.mark.parametrize(("folder", "config"), MADE_BY, ids=[f for f, _ in MADE_BY])
+def test_a_shipped_policy_was_trained_with_its_config_file_alone(folder, config):
+    """The run config a card saved is its config file's, with the card's seed (``--set train.seed=S``): the
+    file's command makes the team again, with no option of a draft or of the command line."""
+    from formation.recipe.config import RunConfig
+
+    training = load(REPO / folder).training
+    saved = RunConfig.from_saved(training["config"])
+    assert saved.to_dict() == RunConfig.load(REPO / config, {"train.seed": saved.train.seed}).to_dict()
+    assert training["commit"]  # the code that made it
+
 def test_a_card_that_names_a_removed_option_loads_at_its_neutral_value_and_is_refused_at_another(tmp_path):
     from formation.policy import PolicyError
 
