@@ -89,6 +89,55 @@ def test_leader_window_moves_the_leader_to_a_fixed_place_on_grids():
     assert torch.equal(crop, expected)  # the destination (0, 4) is 5 rows up: outside
 
 
+def test_the_compass_marks_the_destination_or_the_window_edge_nearest_to_it():
+    h, w = 9, 11
+    obs = torch.zeros(3, h, w, 4, dtype=torch.uint8)
+    obs[:, 0, 5, 0] = 1  # the destination, at (0, 5), in every game
+    obs[0, 8, 1, 3] = 1  # a leader 8 rows below and 4 columns left of it: outside a (3, 1, 2) window
+    obs[1, 2, 6, 3] = 1  # a leader 2 rows below and 1 column right: inside
+    obs[2, 8, 1, 3] = 1
+    obs[2, 0, 5, 0] = 0  # hidden (an agent on it): nothing marked
+    window = LeaderWindow((h, w, 4), (3, 1, 2), frame_channels=4, screens=False, compass=True)
+    crop = window(obs)
+    assert crop.shape == (3, 5, 5, 6) == (3, *window.out_shape)
+    compass = crop[..., 4]
+    expected = torch.zeros(3, 5, 5)
+    expected[0, 0, 4] = 1  # up and right, beyond both edges: the top-right corner
+    expected[1, 1, 1] = 1  # the destination itself: 2 rows up, 1 column left of the leader at (3, 2)
+    assert torch.equal(compass, expected)
+    assert torch.equal(crop[1, 1, 1, 0], torch.tensor(1.0))  # where the destination's own plane shows it
+    # the board plane stays last, and the compass changes no other plane
+    plain = LeaderWindow((h, w, 4), (3, 1, 2), frame_channels=4, screens=False)(obs)
+    assert torch.equal(crop[..., :4], plain[..., :4]) and torch.equal(crop[..., 5], plain[..., 4])
+
+
+def test_the_compass_points_at_the_destination_on_screens_read_per_cell():
+    from formation.config import GameConfig
+    from formation.game import BatchedGame, Observer
+    from formation.recipe.config import RunConfig
+    from formation.recipe.team import network_specs
+
+    run = RunConfig.from_dict({"game": {"setting": 3, "obs_type": "pixels", "frame_stack": 2},
+                               "train": {"destination_compass": True}})
+    spec = network_specs(run)["leader"]
+    assert spec.compass and spec.window == (12, 3, 10)
+    assert NetworkSpec.from_dict(spec.to_dict()) == spec  # as a card keeps it
+    game = BatchedGame(GameConfig.from_setting(3, obs_type="pixels", frame_stack=2), 2, seed=1)
+    game.reset()
+    obs = torch.from_numpy(Observer(game).observe(np.ones(2, dtype=bool)).copy())
+    net = spec.build()
+    plain = network_specs(RunConfig.from_dict({"game": run.game.to_dict()}))["leader"].build()
+    x, without = net.prepare(obs), plain.prepare(obs)  # (N, C, rows, columns), the compass the plane before the board's
+    assert x.shape[1] == without.shape[1] + 1 and x.shape[2:] == (16, 21)
+    # the leaders start 47 rows below the destination and 10 columns left of it (at the window's edge): the top
+    # row's last entry
+    leader = game.positions[:, 0]
+    assert (leader[:, 1] == 15).all() and (leader[:, 0] > 12).all()
+    assert torch.equal(x[:, -2].nonzero(), torch.tensor([[0, 0, 20], [1, 0, 20]]))
+    assert torch.equal(x[:, :-2], without[:, :-1]) and torch.equal(x[:, -1], without[:, -1])
+    assert net(obs).shape == (2, 4)
+
+
 def test_leader_window_finds_the_leader_on_rendered_screens():
     from formation.config import GameConfig
     from formation.game import BatchedGame, Observer

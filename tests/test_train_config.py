@@ -79,6 +79,8 @@ def test_numbers_in_exponent_notation_are_numbers_in_a_file_and_in_overrides(tmp
                               "follower_starts": [[8, 2], [8, 6], [8, 4]]}}, "teacher"),  # 3 followers: no planner
     ({"train": {"leader_window": [1, 2]}}, "train.leader_window"),
     ({"train": {"leader_window": [1, 2, -3]}}, "train.leader_window"),
+    ({"train": {"destination_compass": "yes"}}, "train.destination_compass"),
+    ({"train": {"destination_compass": True, "leader_window": None}}, "train.destination_compass"),
     ({"train": {"path": "stock"}}, "train.path"),  # the default recipe is not RLlib's stock DQN
     ({"eval": {"episodes": 2, "gif_episodes": 3}}, "eval.gif_episodes"),
 ])
@@ -91,8 +93,7 @@ REMOVED_VALUES = [("lr_end", 1e-5), ("failure_restarts", 0.25), ("mirror", True)
                   ("label_order", "toward"), ("label_preference", 0.1), ("safety_priority", 1.0),
                   ("rollout_veto", True), ("safety_slack", 1), ("tolerant_formation", True),
                   ("follower_labels", "response"), ("any_shortest_move", "leader"),
-                  ("followers_share_policy", False), ("potential", "none"), ("destination_compass", True),
-                  ("compass", True)]
+                  ("followers_share_policy", False), ("potential", "none")]
 
 
 @pytest.mark.parametrize("key, value", REMOVED_VALUES)
@@ -121,7 +122,7 @@ def test_a_saved_run_that_names_removed_options_at_their_neutral_values_loads_wi
     saved["train"].update(lr_end=None, failure_restarts=0.0, mirror=False, row_scan=0, label_order="lockstep",
                           label_preference=0.0, safety_priority=0.0, rollout_veto=False, safety_slack=0,
                           tolerant_formation=False, follower_labels="teacher", any_shortest_move="none",
-                          followers_share_policy=True, potential="distance", destination_compass=False, compass=False)
+                          followers_share_policy=True, potential="distance")
     assert set(REMOVED) <= set(saved["train"])
     path = tmp_path / "config.yaml"
     path.write_text(yaml.safe_dump(saved))

@@ -51,9 +51,6 @@ REMOVED: dict[str, tuple[tuple[Any, ...], str, str]] = {  # key: (neutral values
                           "lost on settings 2-3; the one recipe keeps the label", "0.4"),
     "followers_share_policy": ((True,), "the followers always share one network", "0.4"),
     "potential": (("distance",), "train.shaping: 0 turns the distance shaping off", "0.4"),
-    "destination_compass": ((False,), "the destination compass shortened the successes on settings 3 and 4 but "
-                            "validated lower on settings 1, 2 and 4", "0.4"),
-    "compass": ((False,), "a card's network of before 0.4: train.destination_compass, removed", "0.4"),
 }
 
 
@@ -118,6 +115,10 @@ class TrainSettings:
     # the Q-networks look through a window that follows the leader: cells above it, below it, and either
     # side (formation.recipe.qnet.LeaderWindow); null: the whole screen, as the paper's networks
     leader_window: tuple[int, int, int] | None = (12, 3, 10)
+    # the leader's window also marks the destination, or, where it lies outside, the window's edge nearest to it
+    # (formation.recipe.qnet.LeaderWindow): on the 50x50 boards the leader otherwise sees it only in its last 12
+    # rows, and only 10 columns either side. Needs leader_window
+    destination_compass: bool = False
     # pixels only: the Q-networks read one pixel per cell of the board from each screen (the renderer paints a
     # whole cell in one colour, so nothing is lost; formation.recipe.qnet.ScreenCells), then every cell, and the
     # replay stores only those cells; false: the screen in 4x4-pixel patches
@@ -151,7 +152,8 @@ class TrainSettings:
             _integer(self, name, 1)
         _integer(self, "learning_starts", 0)
         _integer(self, "seed", 0)
-        for name in ("prioritized", "team_reward", "screen_cells", "obstacle_forecast", "follower_answers_leader"):
+        for name in ("prioritized", "team_reward", "screen_cells", "obstacle_forecast", "follower_answers_leader",
+                     "destination_compass"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"train.{name}: {getattr(self, name)!r} is not allowed; allowed: true, false")
         if self.exploration not in EXPLORATIONS:
@@ -164,6 +166,9 @@ class TrainSettings:
                 or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in self.leader_window)):
             raise ConfigError(f"train.leader_window: {self.leader_window!r} is not allowed; "
                               "allowed: null or three integers >= 0 (cells above, below, either side)")
+        if self.destination_compass and self.leader_window is None:
+            raise ConfigError("train.destination_compass: true needs train.leader_window other than null; "
+                              "allowed: false")
         if len(self.channels) != 3 or not all(isinstance(c, int) and c >= 1 for c in self.channels):
             raise ConfigError(f"train.channels: {list(self.channels)!r} is not allowed; allowed: three integers >= 1")
 

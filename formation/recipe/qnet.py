@@ -116,20 +116,34 @@ def leader_entry(obs: torch.Tensor, frame_channels: int, screens: bool) -> torch
     return first_entry(mask)[0]
 
 
+def destination_entry(obs: torch.Tensor, frame_channels: int, screens: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N,) long, (N,) bool: the row-major index of the destination's top-left entry in the newest frame of
+    uint8 observations ``(N, H, W, C)`` (on a grid its own plane, the frame's first; on a screen or its cells,
+    white), and whether it is in sight (an agent standing on it hides it)."""
+    newest = obs[..., -frame_channels:]
+    mask = (newest > 127).all(-1) if screens else newest[..., 0] > 0  # GRID_PLANES: destination first
+    return first_entry(mask)
+
+
 class LeaderWindow(nn.Module):
     """``(N, H, W, C)`` frame stacks -> ``(N, up + 1 + down, 2 * side + 1, C + 1)``: every frame shifted
     so that the leader's top-left entry in the newest frame sits at row ``up``, column ``side``;
     entries outside the board are 0, and the extra last plane is 1 on the board. The leader is found
     by ``leader_entry``.
+
+    With ``compass`` one more plane, before the board's, marks the destination where it is in the window,
+    and else the entry of the window's edge nearest to it: a leader far from the destination still knows
+    which way it lies, at the cost of one input plane (a window that shows a 50x50 board's destination from
+    anywhere costs the encoder several times its work).
     """
 
     def __init__(self, obs_shape: tuple[int, int, int], window: tuple[int, int, int], frame_channels: int,
-                 screens: bool):
+                 screens: bool, compass: bool = False):
         super().__init__()
         self.h, self.w, self.c = obs_shape
         self.up, self.down, self.side = window
-        self.frame_channels, self.screens = frame_channels, screens
-        self.out_shape = (self.up + 1 + self.down, 2 * self.side + 1, self.c + 1)
+        self.frame_channels, self.screens, self.compass = frame_channels, screens, compass
+        self.out_shape = (self.up + 1 + self.down, 2 * self.side + 1, self.c + 1 + int(compass))
         # window row i is board row (leader's row - up + i); column j, board column (leader's - side + j)
         self.register_buffer("rows", torch.arange(self.out_shape[0]), persistent=False)
         self.register_buffer("cols", torch.arange(self.out_shape[1]), persistent=False)
@@ -151,7 +165,20 @@ class LeaderWindow(nn.Module):
             return picked.reshape(n, *self.out_shape[:2], k).float() * board[..., None]
 
         parts = [crop(obs) * scale] + ([crop(extra)] if extra is not None else [])
+        if self.compass:
+            parts.append(self.destination_plane(obs, where))
         return torch.cat([*parts, board[..., None].float()], dim=3)
+
+    def destination_plane(self, obs: torch.Tensor, leader: torch.Tensor) -> torch.Tensor:
+        """(N, window rows, window columns, 1): 1 at the destination, clamped into the window (``compass``)."""
+        n, _, w, _ = obs.shape
+        where, seen = destination_entry(obs, self.frame_channels, self.screens)
+        rows, cols = self.out_shape[:2]
+        row = (where // w - leader // w + self.up).clamp(0, rows - 1)
+        col = (where % w - leader % w + self.side).clamp(0, cols - 1)
+        plane = torch.zeros(n, rows * cols, device=obs.device)
+        plane.scatter_(1, (row * cols + col)[:, None], seen.float()[:, None])
+        return plane.reshape(n, rows, cols, 1)
 
 
 class ScreenCells(nn.Module):
@@ -261,7 +288,8 @@ class NetworkSpec:
 
     ``obs_shape`` (H, W, C) and ``high`` (the largest observation value): what the network reads. ``window``
     (rows above, rows below, columns either side of the leader, in entries of the observation): look through
-    a ``LeaderWindow`` first; None: the whole observation as it is. ``frame_channels``: channels of
+    a ``LeaderWindow`` first; None: the whole observation as it is. ``compass``: that window also marks where
+    the destination lies (``LeaderWindow``, ``train.destination_compass``). ``frame_channels``: channels of
     one frame of the stack (None: 3 for screens, 4 for grids). ``cells`` (board height, width), screens only: read one
     pixel per cell first (``ScreenCells``; the cells of ``obs_shape``'s screens, taken already, are read as
     they are); ``window`` is then in cells, and the encoder's first layer reads every cell. ``forecast``: add
@@ -279,6 +307,7 @@ class NetworkSpec:
     hidden: int = 128
     channels: tuple[int, int, int] = (16, 32, 32)
     window: tuple[int, int, int] | None = None
+    compass: bool = False
     frame_channels: int | None = None
     cells: tuple[int, int] | None = None
     forecast: bool = False
@@ -346,8 +375,10 @@ class DuelingQNetwork(nn.Module):
             self.forecast = ObstacleForecast(seen[:2], frame_channels, screens)
             seen = (*seen[:2], seen[2] + len(FORECAST_LAGS))
         self.window = None
+        if spec.compass and window is None:
+            raise ValueError("compass: needs a window")
         if window is not None:
-            self.window = LeaderWindow(seen, tuple(window), frame_channels, screens)
+            self.window = LeaderWindow(seen, tuple(window), frame_channels, screens, spec.compass)
             seen = self.window.out_shape
         self.encoder = encoder(seen, channels, screens and self.cells is None)
         with torch.no_grad():
@@ -378,7 +409,7 @@ class DuelingQNetwork(nn.Module):
                             None if forecast is None else (forecast.height, forecast.width, forecast.frame_channels,
                                                            forecast.screens, tuple(forecast.lags.tolist())),
                             None if window is None else (window.out_shape, window.up, window.down, window.side,
-                                                         window.frame_channels, window.screens))
+                                                         window.frame_channels, window.screens, window.compass))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.q_values(self.prepare(obs))

@@ -75,7 +75,7 @@ def network_specs(run: RunConfig) -> dict[str, NetworkSpec]:
             # and right
             window = (math.ceil(up * rows), math.ceil((down + 1) * rows), math.ceil((side + 1) * cols))
     return {m: NetworkSpec(obs_shape=shape, high=float(obs_space.high.max()), hidden=t.hidden, channels=t.channels,
-                           window=window, frame_channels=frame_channels,
+                           window=window, compass=t.destination_compass, frame_channels=frame_channels,
                            cells=(game.height, game.width) if per_cell else None, forecast=t.obstacle_forecast,
                            answers_leader=answers_leader(run, m), safety=run.safety_head,
                            safety_encoder=run.safety_head and run.teacher.safety_encoder, roles=roles_of(run, m))
