@@ -1,8 +1,11 @@
 """Where a team's successes lose steps against the planner (docs/RESULTS.md, "One command per setting"):
 the leader's waits, its moves along row 0 (sliding sideways to the destination), and its column offset from
-the destination as it first reaches some rows, over the successes of the first N validation scenarios.
+the destination as it first reaches some rows, over the successes of the first N validation scenarios; and where
+the time-outs end: how far the leader stands below the destination and beside it (docs/RESULTS.md, "One team for
+every setting and team size").
 
-    .venv/bin/python experiments/leader_detours.py POLICY [N]     # POLICY: a run, its checkpoint/, an export
+    .venv/bin/python experiments/leader_detours.py POLICY [N] [SETTING FOLLOWERS]
+    # POLICY: a run, its checkpoint/, an export; SETTING FOLLOWERS: the game of a team of many games
 """
 
 import sys
@@ -16,8 +19,10 @@ STAY = 3  # the action S (docs/GAME.md, 'Actions')
 VALIDATION_SEED = 3_000_000
 
 
-def main(path: str, n: int = 200) -> None:
+def main(path: str, n: int = 200, setting: int | None = None, followers: int | None = None) -> None:
     policy = load(path)
+    if setting is not None:
+        policy = policy.for_game(setting=setting, n_followers=followers)
     seen = []  # (leader's position before the step, its action, live) of every step
 
     def watch(game, actions, live):
@@ -38,7 +43,17 @@ def main(path: str, n: int = 200) -> None:
             first = live & (at[:, 0] == row) & np.isnan(offset)
             offset[first] = at[first, 1] - column
         print(f"row {row}: the leader's mean column offset from the destination {np.nanmean(offset[won]):+.2f}")
+    timeouts = np.asarray(played["timeout"])
+    if timeouts.any():
+        last = np.zeros((n, 2), np.int64)  # the leader's cell before each game's last step
+        for at, _, live in seen:
+            last[live] = at[live]
+        below = last[timeouts, 0] - policy.game.destination[0]
+        beside = np.abs(last[timeouts, 1] - column)
+        print(f"{timeouts.sum()} time-outs: the leader ends {np.median(below):.0f} rows below the destination and "
+              f"{np.median(beside):.0f} columns beside it (medians); {(beside > below).mean():.0%} more columns "
+              f"beside it than rows below it, {(beside > 10).mean():.0%} beyond the window's 10 columns")
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], *(int(a) for a in sys.argv[2:3]))
+    main(sys.argv[1], *(int(a) for a in sys.argv[2:5]))

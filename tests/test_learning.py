@@ -154,3 +154,79 @@ def test_a_run_stopped_after_an_evaluation_keeps_the_team_it_evaluated(tmp_path)
     assert team.env_steps == first["env_steps"] < run.train.total_env_steps
     assert team.training["evaluation"]["greedy"]["success"] == first["greedy/success"]
     assert not (out / "result.json").exists()
+
+
+def test_the_learner_keeps_a_moving_average_of_each_networks_weights_after_every_update():
+    """``train.average_decay``: after each update every averaged weight moves ``1 - decay`` of the way to the
+    network's; the networks themselves learn as without it."""
+    import copy
+
+    import torch
+
+    from formation.recipe.collect import Collector
+    from formation.recipe.learn import Learner
+    from formation.recipe.replay import FrameReplay
+    from formation.recipe.team import network_specs, replay_frame_shape
+
+    run = RunConfig.load(SMALL, {"train.average_decay": 0.9, "train.batch_size": 8})
+    plain_run = RunConfig.load(SMALL, {"train.batch_size": 8})
+    replay = FrameReplay(2000, replay_frame_shape(run), 2, run.game.frame_stack, seed=0)
+    collector = Collector(run, 0)
+    torch.manual_seed(0)
+    networks = {m: spec.build() for m, spec in network_specs(run).items()}
+    for _ in range(4):
+        replay.add(collector.collect(networks, run.train.steps_per_sample, 0)[0])
+    learner, plain = Learner(run, networks), Learner(plain_run, copy.deepcopy(networks))
+    assert plain.averaged is None and set(learner.averaged) == set(networks)
+    expected = {m: [p.detach().clone() for p in net.parameters()] for m, net in networks.items()}  # the start
+    for _ in range(3):
+        sample = replay.sample(8, n_step=run.train.n_step, gamma=run.train.gamma)
+        learner.update(sample)
+        plain.update(sample)
+        for m, net in networks.items():
+            expected[m] = [0.9 * e + 0.1 * p.detach() for e, p in zip(expected[m], net.parameters())]
+    for m, net in networks.items():
+        assert all(torch.allclose(a, e, atol=1e-6) for a, e in zip(learner.averaged[m].parameters(), expected[m]))
+        assert not all(torch.equal(a, p) for a, p in zip(learner.averaged[m].parameters(), net.parameters()))
+        assert all(torch.equal(a, b) for a, b in zip(net.parameters(), plain.networks[m].parameters()))
+
+
+def test_a_run_that_averages_evaluates_and_exports_the_averaged_team(tmp_path):
+    """The loop's evaluations, its export and ``best/`` are the averaged team's; training itself is unchanged, so
+    an average that barely moves (decay near 0) leaves the very team of a run without one."""
+    import torch
+
+    from formation.policy import load
+    from formation.recipe.loop import train
+
+    base = {"train.total_env_steps": 1280, "train.learning_starts": 320, "eval.every_env_steps": 1280,
+            "eval.episodes": 10}
+    teams = {}
+    for decay in (0.0, 1e-9, 0.99):
+        out = tmp_path / f"decay{decay}"
+        train(RunConfig.load(SMALL, {**base, "train.average_decay": decay}), out, say=lambda line: None)
+        teams[decay] = load(out)
+        assert load(out / "best").training["evaluation"] == teams[decay].training["evaluation"]
+        assert teams[decay].training["config"]["train"]["average_decay"] == decay
+
+    def weights(team):
+        return [p for m in sorted(team.networks) for p in team.networks[m].state_dict().values()]
+
+    assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(weights(teams[0.0]), weights(teams[1e-9])))
+    assert not all(torch.allclose(a, b, atol=1e-3) for a, b in zip(weights(teams[0.0]), weights(teams[0.99])))
+    played = play_greedy(teams[0.99].game, teams[0.99].act_batch, 10, teams[0.99].eval_settings["seed"])["summary"]
+    assert played["success"] == teams[0.99].training["evaluation"]["greedy"]["success"]
+
+
+def test_a_bad_average_decay_and_one_the_ray_path_cannot_keep_are_refused_in_one_line(tmp_path, capfd):
+    from formation.cli import main
+    from formation.config import ConfigError
+
+    for bad in (1, -0.1, "0.9", True):
+        with pytest.raises(ConfigError, match=r"^train\.average_decay: .* allowed: a number in \[0, 1\)"):
+            RunConfig.from_dict({"train": {"average_decay": bad}})
+    out = tmp_path / "run"
+    assert main(["train", SMALL, "--out", str(out), "--set", "train.average_decay=0.999"]) != 0  # Ray's path
+    assert capfd.readouterr().err.strip().splitlines() == [
+        "formation: error: train.average_decay: the averaged team is kept in one process for now; allowed: "
+        "formation train CONFIG --no-ray, or 0 here"] and not out.exists()

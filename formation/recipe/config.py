@@ -129,6 +129,10 @@ class TrainSettings:
     # Needs grid observations or screen_cells, and frame_stack >= 2
     obstacle_forecast: bool = True
     grad_clip: float = 10.0  # global gradient norm clip
+    # the team that is evaluated, kept in best/ and exported is an exponential moving average of the networks'
+    # weights (Polyak averaging) with this decay per learner update (0.999: about the last 1,000 updates); it
+    # smooths the swings between evaluations. Rollouts act with the networks themselves. 0: no average
+    average_decay: float = 0.0
     total_env_steps: int = 300_000  # env steps to train for
     weights_every_updates: int = 50  # learner updates between weight broadcasts to rollout actors
     path: str = "formation"  # "formation": rollout actors -> replay actor -> learner; "stock": RLlib's DQN
@@ -142,6 +146,10 @@ class TrainSettings:
         _number(self, "epsilon_end", 0.0, 1.0)
         _number(self, "shaping", 0.0, math.inf)
         _number(self, "exploring_starts", 0.0, 1.0)
+        if not (isinstance(self.average_decay, int | float) and not isinstance(self.average_decay, bool)
+                and 0 <= self.average_decay < 1):
+            raise ConfigError(f"train.average_decay: {self.average_decay!r} is not allowed; allowed: a number in "
+                              "[0, 1) (0: no average)")
         kept = self.reward_formation_kept
         number = isinstance(kept, int | float) and not isinstance(kept, bool) and math.isfinite(kept)
         if kept is not None and not number:

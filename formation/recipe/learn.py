@@ -54,9 +54,18 @@ def sample_priorities(per_module: dict[str, np.ndarray], n: int) -> np.ndarray:
     return np.stack([np.asarray(p).reshape(-1, n).max(0) for p in per_module.values()]).max(0)
 
 
+def average_into(averaged: DuelingQNetwork, net: DuelingQNetwork, decay: float) -> None:
+    """One step of the exponential moving average of ``net``'s weights kept in ``averaged``: each weight becomes
+    ``decay * averaged + (1 - decay) * net`` (``train.average_decay``)."""
+    with torch.no_grad():
+        torch._foreach_lerp_(list(averaged.parameters()), list(net.parameters()), 1.0 - decay)
+
+
 class Learner:
     """The team's networks, their target copies and Adam optimizers: ``update`` is one learner update of every
-    module on a replay sample (``formation.recipe.replay.FrameReplay.sample``)."""
+    module on a replay sample (``formation.recipe.replay.FrameReplay.sample``). With ``train.average_decay``,
+    ``averaged`` holds the moving average of each network's weights after every update: the team that is
+    evaluated and exported (None: the networks themselves)."""
 
     def __init__(self, run: RunConfig, networks: dict[str, DuelingQNetwork]):
         self.run, self.networks = run, networks
@@ -66,6 +75,9 @@ class Learner:
         self.answering = frozenset(m for m in networks if answers_leader(run, m))
         self.loss_weights = loss_weights(run)
         self.updates = 0
+        self.averaged = None
+        if run.train.average_decay:
+            self.averaged = {m: copy.deepcopy(net).requires_grad_(False) for m, net in networks.items()}
 
     def update(self, sample: dict[str, np.ndarray], game: tuple[list[str], dict, dict] | None = None
                ) -> tuple[np.ndarray, dict[str, dict[str, float]]]:
@@ -90,6 +102,8 @@ class Learner:
             stats[module]["total_loss"] = loss.item()
             priorities[module] = priority.numpy()
         self.updates += 1
+        for module, averaged in (self.averaged or {}).items():
+            average_into(averaged, self.networks[module], t.average_decay)
         if self.updates % t.target_update_every == 0:  # the target copies follow every target_update_every updates
             for module, net in self.networks.items():
                 self.targets[module].load_state_dict(net.state_dict())

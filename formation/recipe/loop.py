@@ -49,6 +49,12 @@ class Game:
     replay: FrameReplay
     networks: dict[str, torch.nn.Module]
     targets: dict[str, torch.nn.Module]
+    averaged: dict[str, torch.nn.Module] | None = None  # their moving average (train.average_decay)
+
+    @property
+    def team(self) -> dict[str, torch.nn.Module]:
+        """The networks that are evaluated and exported: the average where the run keeps one."""
+        return self.averaged or self.networks
 
     @property
     def name(self) -> str:
@@ -80,8 +86,8 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
         replay = FrameReplay(t.replay_capacity // len(kinds), replay_frame_shape(kind), 1 + kind.game.n_followers,
                              kind.game.frame_stack, seed=t.seed + index, prioritized=t.prioritized)
         games.append(Game(kind, Collector(kind, index), replay,
-                          {m: tied(specs[m], net) for m, net in networks.items()} if index else networks,
-                          {m: tied(specs[m], net) for m, net in learner.targets.items()} if index else learner.targets))
+                          *(reading(specs, nets, own=not index)
+                            for nets in (networks, learner.targets, learner.averaged))))
     steps_per_collect = run.resources.games_per_actor * t.steps_per_sample
     env_steps, next_eval, started, episodes = 0, run.eval.every_env_steps, time.perf_counter(), []
 
@@ -117,7 +123,7 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
             if out is not None:  # the team as evaluated, so that a run stopped later still leaves it
                 metrics.write(json.dumps(row) + "\n")
                 metrics.flush()
-                team = policy_of(kinds[0], networks, source=str(out), env_steps=env_steps)
+                team = policy_of(kinds[0], games[0].team, source=str(out), env_steps=env_steps)
                 team.training = {"config": run.to_dict(), "env_steps": env_steps, "learner_updates": learner.updates,
                                  "wall_seconds": round(time.perf_counter() - started, 3),
                                  "evaluation": {"env_steps": env_steps, "seed": run.eval.seed, "greedy": summary},
@@ -136,6 +142,14 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
     return summary
 
 
+def reading(specs: dict, networks: dict[str, torch.nn.Module] | None, own: bool) -> dict | None:
+    """``networks`` reading the board of ``specs``: themselves on the run's ``own`` (first) game, else networks
+    tied to them (``formation.recipe.qnet.tied``)."""
+    if networks is None or own:
+        return networks
+    return {m: tied(specs[m], net) for m, net in networks.items()}
+
+
 def policy_of(run: RunConfig, networks: dict[str, torch.nn.Module], source: str, env_steps: int | None = None):
     """A ``formation.policy.Policy`` of copies of ``networks`` (a Policy freezes the networks it holds)."""
     return Policy(run.game, {m: copy.deepcopy(net) for m, net in networks.items()}, network_specs(run),
@@ -152,8 +166,8 @@ def evaluate(run: RunConfig, networks: dict[str, torch.nn.Module]) -> dict:
 def evaluate_games(games: list[Game]) -> dict:
     """``evaluate`` of one game; of several, each game's summary (``games``, by name) and their mean success."""
     if len(games) == 1:
-        return evaluate(games[0].run, games[0].networks)
-    each = {g.name: evaluate(g.run, g.networks) for g in games}
+        return evaluate(games[0].run, games[0].team)
+    each = {g.name: evaluate(g.run, g.team) for g in games}
     return {"success": float(np.mean([s["success"] for s in each.values()])), "games": each}
 
 
