@@ -371,8 +371,11 @@ def _load_run(run_dir: Path, checkpoint: Path | None = None) -> Policy:
         try:
             with state_file.open("rb") as f:
                 state = pickle.load(f)
-            weights = {k[len("q_network."):]: torch.as_tensor(np.array(v)) for k, v in state.items()
-                       if k.startswith("q_network.")}
+            # the team training evaluated: the moving average of the weights where the run keeps one
+            averaged = any(k.startswith("_averaged_q_network.") for k in state)
+            prefix = "_averaged_q_network." if averaged else "q_network."
+            weights = {k[len(prefix):]: torch.as_tensor(np.array(v)) for k, v in state.items()
+                       if k.startswith(prefix)}
         except Exception as err:  # a damaged pickle raises any of several kinds
             raise PolicyError(f"checkpoint: {str(state_file)!r} is damaged or not a module state "
                               f"({type(err).__name__})") from None

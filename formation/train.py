@@ -189,9 +189,6 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
     if run.games is not None:
         raise ConfigError("games: a team of many games trains in one process for now; allowed: formation train "
                           "CONFIG --no-ray")
-    if run.train.average_decay:
-        raise ConfigError("train.average_decay: the averaged team is kept in one process for now; allowed: "
-                          "formation train CONFIG --no-ray, or 0 here")
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "config.yaml").write_text(yaml.safe_dump(run.to_dict(), sort_keys=False))
     earlier = read_training_record(out_dir) if resume else None

@@ -218,15 +218,12 @@ def test_a_run_that_averages_evaluates_and_exports_the_averaged_team(tmp_path):
     assert played["success"] == teams[0.99].training["evaluation"]["greedy"]["success"]
 
 
-def test_a_bad_average_decay_and_one_the_ray_path_cannot_keep_are_refused_in_one_line(tmp_path, capfd):
-    from formation.cli import main
+def test_a_bad_average_decay_and_one_rllibs_stock_dqn_would_not_keep_are_refused_in_one_line():
     from formation.config import ConfigError
+    from formation.recipe.config import STOCK_TRAIN
 
     for bad in (1, -0.1, "0.9", True):
         with pytest.raises(ConfigError, match=r"^train\.average_decay: .* allowed: a number in \[0, 1\)"):
             RunConfig.from_dict({"train": {"average_decay": bad}})
-    out = tmp_path / "run"
-    assert main(["train", SMALL, "--out", str(out), "--set", "train.average_decay=0.999"]) != 0  # Ray's path
-    assert capfd.readouterr().err.strip().splitlines() == [
-        "formation: error: train.average_decay: the averaged team is kept in one process for now; allowed: "
-        "formation train CONFIG --no-ray, or 0 here"] and not out.exists()
+    with pytest.raises(ConfigError, match=r"^train\.path: stock .*average_decay: 0\.0"):
+        RunConfig.from_dict({"train": {**STOCK_TRAIN, "path": "stock", "average_decay": 0.999}})

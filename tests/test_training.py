@@ -299,6 +299,36 @@ def test_data_parallel_learners_each_pull_from_their_own_shards_and_hold_equal_w
     assert ray.util.placement_group_table(algo._learners_placement)["state"] == "REMOVED"  # given back
 
 
+
+def test_a_run_that_averages_plays_and_exports_the_average_while_its_rollouts_act_with_the_networks(cluster,
+                                                                                                  tmp_path):
+    """``train.average_decay`` on the Ray path: the learner's modules keep the moving average of their weights after
+    every update; the evaluations, the final team and a checkpoint's export are that average, and the weights sent
+    to the rollout actors are the networks' own."""
+    import torch
+
+    from formation.policy import load
+
+    run, algo = build(1, learning_starts=200, average_decay=0.9)
+    try:
+        while algo.counters["updates"] < 5:
+            algo.train()
+        [(online, averaged, pushed)] = [r.get() for r in algo.learner_group.foreach_learner(lambda learner: (
+            {m: learner.module[m].unwrapped().q_network.state_dict() for m in ("leader", "follower")},
+            {m: learner.module[m].unwrapped()._averaged_q_network.state_dict() for m in ("leader", "follower")},
+            ray.get(learner.weights_ref()[0])))]
+        team = algo.local_modules()  # what the evaluations and formation train's final team play
+        exported = load(algo.save_to_path(str(tmp_path / "checkpoint")))
+        for m in ("leader", "follower"):
+            assert any(not torch.equal(online[m][k], averaged[m][k]) for k in online[m])  # it is another team
+            for k, weight in averaged[m].items():
+                assert torch.equal(team[m].q_network.state_dict()[k], weight), (m, k)
+                assert torch.equal(exported.networks[m].state_dict()[k], weight), (m, k)
+                assert torch.equal(torch.as_tensor(pushed[m][f"q_network.{k}"]), online[m][k]), (m, k)
+            assert not any(k.startswith("_averaged") for k in pushed[m])  # the rollout actors get none of it
+    finally:
+        algo.stop()
+
 def test_learners_need_shards_of_their_own_and_a_batch_that_splits():
     with pytest.raises(ConfigError, match=r"^resources\.num_replay_shards: 1 is not allowed with num_learners: 2 "
                                           r"\(each learner pulls from shards of its own\); allowed: 2 or more$"):

@@ -368,7 +368,7 @@ SECTIONS = {"train": TrainSettings, "resources": ResourceSettings, "eval": EvalS
 OPTIONAL_SECTIONS = {"teacher": TeacherSettings, "games": GamesSettings}  # absent: off
 # what train.path: stock needs: RLlib's DQN has none of the recipe's rewards, priorities or answering followers
 STOCK_TRAIN = {"shaping": 0.0, "prioritized": False, "follower_answers_leader": False, "reward_formation_kept": None,
-               "team_reward": False}
+               "team_reward": False, "average_decay": 0.0}
 PLANNER_FOLLOWERS = (1, 2)  # the team sizes whose joint moves the planner searches (formation.planner)
 
 

@@ -50,7 +50,7 @@ from formation.recipe.learn import loss_weights
 from formation.recipe.replay import FrameReplay
 from formation.recipe.stopwatch import Stopwatch, add_seconds
 from formation.recipe.team import answers_leader, module_of_agent, network_specs, replay_frame_shape, spaces_of
-from formation.rllib.learner import FormationLearner
+from formation.rllib.learner import FormationLearner, team_weights
 from formation.rllib.module import DuelingQModule
 from formation.rllib.replay_actor import ReplayActor
 from formation.rllib.rollout_actor import RolloutActor, no_episodes_yet
@@ -287,7 +287,8 @@ def module_specs(run: RunConfig, inference_only: bool = False) -> dict[str, RLMo
     the env's actions, 0..3 (``DuelingQModule``). The exploration schedule is the config's ``epsilon``."""
     obs_space, act_space = spaces_of(run)
     return {m: RLModuleSpec(module_class=DuelingQModule, observation_space=obs_space, action_space=act_space,
-                            model_config={"network": spec.to_dict()}, inference_only=inference_only)
+                            model_config={"network": spec.to_dict(), "average_decay": run.train.average_decay},
+                            inference_only=inference_only)
             for m, spec in network_specs(run).items()}
 
 
@@ -524,10 +525,9 @@ class GreedyEvaluationMixin:
                          run.eval.seed if seed is None else seed, record)
 
     def _inference_weights(self) -> dict:
-        """The learner's current module weights, inference parts only (the learners hold equal weights)."""
-        return learner_values(self.learner_group.foreach_learner(
-            lambda learner: learner.get_state(components=COMPONENT_RL_MODULE, inference_only=True)
-            [COMPONENT_RL_MODULE]))[0]
+        """The weights of the team as it is now, inference parts only: the learner's moving average where the run
+        keeps one (``train.average_decay``), else its modules' (the learners hold equal weights)."""
+        return learner_values(self.learner_group.foreach_learner(team_weights))[0]
 
     def local_modules(self) -> dict:
         """CPU copies of the learner's current modules."""

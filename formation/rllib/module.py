@@ -3,9 +3,11 @@
 It implements RLlib's ``QNetAPI`` and ``TargetNetworkAPI``, so RLlib's DQN learner (the stock
 path) and ours both train it, and ``InferenceOnlyAPI``, so rollout actors get weights without
 the target network. ``model_config``: ``network``, the network's ``NetworkSpec.to_dict()``
-(``formation.recipe.team.network_specs``), and ``epsilon``. Its observation space is what it acts on; a
-network that reads screens per cell also takes their cells (the formation path's replay batches hold only
-those), so the learner's batches may differ from that space in height and width.
+(``formation.recipe.team.network_specs``), ``epsilon``, and ``average_decay``: a learner's module also keeps the
+moving average of the network's weights (``train.average_decay``), the team that is evaluated and exported.
+Its observation space is what it acts on; a network that reads screens per cell also takes their cells (the
+formation path's replay batches hold only those), so the learner's batches may differ from that space in height and
+width.
 Every module acts in the env's actions, 0..3. A module that answers the leader has 16 Q-values, one per (leader's
 move, own move) as ``4 * leader + own``; alone, without the leader's move, its ``forward_inference`` and
 ``forward_exploration`` return the own move of its best pair. The formation path's rollout actors and evaluation read
@@ -14,6 +16,7 @@ its Q-values instead and take the row of the move the leader makes (``formation.
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import numpy as np
@@ -42,6 +45,9 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
         # RLlib's DQNConfig puts an epsilon schedule into every module's model_config.
         self.epsilon_schedule = Scheduler(fixed_value_or_schedule=cfg.get("epsilon", 0.05), framework="torch")
         self._rng = np.random.default_rng()
+        self._averaged_q_network = None
+        if cfg.get("average_decay") and not self.inference_only:
+            self._averaged_q_network = copy.deepcopy(self.q_network).requires_grad_(False)
 
     # -- QNetAPI
     def compute_q_values(self, batch: dict[str, Any]) -> dict[str, Any]:
@@ -59,7 +65,7 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
 
     # -- InferenceOnlyAPI
     def get_non_inference_attributes(self) -> list[str]:
-        return ["_target_q_network"]
+        return ["_target_q_network", "_averaged_q_network"]
 
     # -- forward passes
     def greedy_actions(self, obs: torch.Tensor) -> torch.Tensor:
