@@ -7,11 +7,19 @@ from pathlib import Path
 import pytest
 
 from formation.evaluate import play_greedy
+from formation.game import BatchedGame
 from formation.policy import load, training_line
 
 REPO = Path(__file__).resolve().parent.parent
 SEED = 2_000_000  # docs/RESULTS.md evaluates from here: scenarios no training run used
 EPISODES = 50  # eight policies, four of them on 50x50 boards: the suite's time matters
+
+
+def first_scenarios(game, reported: dict, n: int) -> list[dict]:
+    """The first ``n`` of the scenarios a report played (a batch of other size draws other games)."""
+    games = BatchedGame(game, batch_size=reported["episodes"], seed=reported["seed"])
+    games.reset()
+    return [games.scenario(i).to_dict() for i in range(n)]
 
 
 # the teacher's policies, and those learnt from the reward alone that have shipped so far
@@ -31,7 +39,8 @@ def test_a_shipped_policy_plays_its_setting_from_pixels_as_reported(family, sett
         assert reported["trained"]["planner_options"] == []
         assert training_line(policy.training).endswith("from the reward alone, no planner")
     assert reported["episodes"] == 1000 and reported["env_steps"] == policy.env_steps
-    summary = play_greedy(policy.game, policy.act_batch, EPISODES, SEED)["summary"]
+    summary = play_greedy(policy.game, policy.act_batch, EPISODES, SEED,
+                          scenarios=first_scenarios(policy.game, reported, EPISODES))["summary"]
     # the first 50 of the 1000 reported scenarios: far above chance (random play: 0%), and
     # within about three standard errors of the reported rate
     p = reported["success"]
@@ -87,6 +96,7 @@ def test_the_generalist_plays_each_of_its_games_from_pixels_as_reported(report):
     assert reported["setting"] in games["settings"] and reported["followers"] in games["followers"]
     game = policy.for_game(setting=reported["setting"], n_followers=reported["followers"])
     episodes = 20  # twelve games: the first 20 of each report's scenarios
-    summary = play_greedy(game.game, game.act_batch, episodes, reported["seed"])["summary"]
+    summary = play_greedy(game.game, game.act_batch, episodes, reported["seed"],
+                          scenarios=first_scenarios(game.game, reported, episodes))["summary"]
     p = reported["success"]
     assert summary["success"] >= p - 3 * (p * (1 - p) / episodes) ** 0.5 - 0.01, (summary, p)
