@@ -203,9 +203,12 @@ def test_a_saved_run_from_before_the_teacher_section_loads_with_its_teacher_or_w
 
 @pytest.mark.parametrize("folder", ["configs", "configs/reward_only"])
 def test_the_four_settings_configs_share_one_recipe_and_differ_in_the_setting_and_the_budget(folder):
+    """... and in whether they keep the averaged team, one decay for all, which the configs take up as each is run
+    again with it (configs/reward_only/setting1.yaml, setting2.yaml so far)."""
     def recipe(k: int) -> dict:
         values = yaml.safe_load(open(f"{folder}/setting{k}.yaml"))
         assert values["game"]["setting"] == k
+        assert values["train"].pop("average_decay", 0.999) == 0.999
         for section, key in (("game", "setting"), ("train", "total_env_steps")):
             del values[section][key]
         return values
