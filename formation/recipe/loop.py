@@ -11,8 +11,9 @@ It runs the very functions of the distributed path (the rollout actors' ``Collec
 reference a reader can follow, and what the learning tests train with. The folder it writes holds ``config.yaml``,
 ``metrics.jsonl`` (a line per evaluation), ``result.json`` (the final greedy evaluation) and the team as an export
 (``policy.json``, ``<module>.pt``; written at every evaluation, so a stopped run leaves the team it last
-evaluated), which ``formation evaluate DIR`` and ``formation.policy.load(DIR)`` read, and in ``best/`` the team of
-the best evaluation so far (``formation.policy.keep_if_best``). It keeps no checkpoints and cannot resume: a long
+evaluated; with ``train.average_decay``, the averaged team that training evaluates), which ``formation evaluate
+DIR`` and ``formation.policy.load(DIR)`` read, and in ``best/`` the team of the best evaluation so far
+(``formation.policy.keep_if_best``). It keeps no checkpoints and cannot resume: a long
 run is a Ray run (``formation train CONFIG``).
 """
 
