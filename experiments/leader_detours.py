@@ -50,9 +50,10 @@ def main(path: str, n: int = 200, setting: int | None = None, followers: int | N
             last[live] = at[live]
         below = last[timeouts, 0] - policy.game.destination[0]
         beside = np.abs(last[timeouts, 1] - column)
+        side = (policy.specs["leader"].window or (0, 0, policy.game.width))[2]  # columns the leader sees either side
         print(f"{timeouts.sum()} time-outs: the leader ends {np.median(below):.0f} rows below the destination and "
               f"{np.median(beside):.0f} columns beside it (medians); {(beside > below).mean():.0%} more columns "
-              f"beside it than rows below it, {(beside > 10).mean():.0%} beyond the window's 10 columns")
+              f"beside it than rows below it, {(beside > side).mean():.0%} beyond the window's {side} columns")
 
 
 if __name__ == "__main__":

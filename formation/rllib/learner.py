@@ -26,7 +26,7 @@ from ray.rllib.core.columns import Columns
 from ray.rllib.policy.sample_batch import MultiAgentBatch, SampleBatch
 from ray.rllib.utils.metrics import NUM_ENV_STEPS_SAMPLED_LIFETIME
 
-from formation.recipe.learn import average_into, sample_priorities
+from formation.recipe.learn import sample_priorities
 from formation.recipe.loss import ACTIONS, NEXT_OBS, OBS, dqn_loss, module_batches
 from formation.recipe.stopwatch import Stopwatch, with_size
 from formation.rllib.module import PREPARED_NEXT_OBS, PREPARED_OBS, SAFETY_LOGITS
@@ -39,7 +39,7 @@ def team_weights(learner) -> dict:
     moving average where its module keeps one (``train.average_decay``), else the network's own."""
     state = learner.get_state(components=COMPONENT_RL_MODULE, inference_only=True)[COMPONENT_RL_MODULE]
     for module_id, weights in state.items():
-        averaged = getattr(learner.module[module_id].unwrapped(), "_averaged_q_network", None)
+        averaged = learner.module[module_id].unwrapped()._averaged_q_network
         if averaged is not None:
             weights.update({f"q_network.{k}": v.detach().cpu().numpy() for k, v in averaged.state_dict().items()})
     return state
@@ -206,9 +206,7 @@ class FormationLearner(DQNTorchLearner):
                         _no_metrics_reduce=True)
         self.num_updates += 1
         for module_id in batches:
-            module = self.module[module_id].unwrapped()
-            if module._averaged_q_network is not None:
-                average_into(module._averaged_q_network, module.q_network, self.config.run.train.average_decay)
+            self.module[module_id].unwrapped().update_average()
         with clock("batch"):
             for module_id, stats in self._stats.items():
                 for key, value in stats.items():

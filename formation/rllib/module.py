@@ -29,7 +29,7 @@ from ray.rllib.core.rl_module.torch import TorchRLModule
 from ray.rllib.utils.schedules.scheduler import Scheduler
 
 from formation.recipe.collect import epsilon_greedy
-from formation.recipe.learn import forward
+from formation.recipe.learn import average_into, forward
 from formation.recipe.loss import ROLE
 from formation.recipe.qnet import N_ACTIONS, NetworkSpec
 
@@ -45,8 +45,9 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
         # RLlib's DQNConfig puts an epsilon schedule into every module's model_config.
         self.epsilon_schedule = Scheduler(fixed_value_or_schedule=cfg.get("epsilon", 0.05), framework="torch")
         self._rng = np.random.default_rng()
+        self._average_decay = cfg.get("average_decay", 0.0)
         self._averaged_q_network = None
-        if cfg.get("average_decay") and not self.inference_only:
+        if self._average_decay and not self.inference_only:
             self._averaged_q_network = copy.deepcopy(self.q_network).requires_grad_(False)
 
     # -- QNetAPI
@@ -62,6 +63,12 @@ class DuelingQModule(TorchRLModule, InferenceOnlyAPI, TargetNetworkAPI, QNetAPI)
 
     def forward_target(self, batch: dict[str, Any]) -> dict[str, Any]:
         return {QF_PREDS: self._target_q_network(batch[Columns.OBS])}
+
+    def update_average(self) -> None:
+        """After a learner update: one step of the moving average of the network's weights, if the module keeps one
+        (``formation.recipe.learn.average_into``)."""
+        if self._averaged_q_network is not None:
+            average_into(self._averaged_q_network, self.q_network, self._average_decay)
 
     # -- InferenceOnlyAPI
     def get_non_inference_attributes(self) -> list[str]:
