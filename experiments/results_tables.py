@@ -128,9 +128,11 @@ INGREDIENTS = {
     "pixels_setting2_nocompass_seed0": "setting 2, pixels: kept 0, team reward (`configs/reward_only/setting2.yaml` "
                                        "before the averaged team)",
     "pixels_setting2_seed0": "setting 2, pixels: kept 0, team reward, the destination compass",
-    "pixels_setting3_nocompass_seed0": "setting 3, pixels: kept 0, team reward (`configs/reward_only/setting3.yaml`)",
+    "pixels_setting3_nocompass_seed0": "setting 3, pixels: kept 0, team reward (`configs/reward_only/setting3.yaml` "
+                                       "before the averaged team)",
     "pixels_setting3_seed0": "setting 3, pixels: kept 0, team reward, the destination compass",
-    "pixels_setting4_nocompass_seed0": "setting 4, pixels: kept 0, team reward (`configs/reward_only/setting4.yaml`)",
+    "pixels_setting4_nocompass_seed0": "setting 4, pixels: kept 0, team reward (`configs/reward_only/setting4.yaml` "
+                                       "before the averaged team)",
     "pixels_setting4_seed0": "setting 4, pixels: kept 0, team reward, the destination compass",
 }
 
@@ -222,8 +224,8 @@ def reproduced_table() -> None:
 # the validation report of each shipped reward-only team (docs/results/reward_only/...)
 SHIPPED_VALIDATION = {"setting1": "reproduced/setting1_seed1_noray.json",
                       "setting2": "reproduced/setting2_seed0_noray_best.json",
-                      "setting3": "reproduced/setting3_seed1_noray_best.json",
-                      "setting4": "reproduced/setting4_seed1_noray_best.json"}
+                      "setting3": "reproduced/setting3_seed1_noray.json",
+                      "setting4": "reproduced/setting4_seed1_noray.json"}
 
 
 def teams_table() -> None:
