@@ -195,6 +195,10 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
     session = {"started": now(), "commit": code_commit()}
     session_clock = time.monotonic()  # the session's wall time counts Ray's start and the restore too
 
+    def wall_seconds() -> float:  # the run's training time so far, earlier sessions included
+        earlier_seconds = sum(s["seconds"] for s in (earlier or {}).get("sessions", []))
+        return round(earlier_seconds + time.monotonic() - session_clock, 3)
+
     previous_handler = signal.signal(signal.SIGTERM, _raise_stop)
     try:
         algo = _start(run, out_dir, resume)
@@ -242,7 +246,8 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
                 progress.show(int(row["env_steps"]), algo.last_eval.get("success"), row["env_steps_per_s"])
             if algo.last_eval_weights is not None and algo.last_eval["env_steps"] != kept_at:
                 kept_at = algo.last_eval["env_steps"]
-                keep_best(run, modules_of(run, algo.last_eval_weights), algo.last_eval, out_dir, session)
+                keep_best(run, modules_of(run, algo.last_eval_weights), algo.last_eval, out_dir, session,
+                          wall_seconds())
             if iteration % run.checkpoint.every_iterations == 0:
                 save(algo)
             if on_iteration is not None:
@@ -250,7 +255,8 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         modules = algo.local_modules()  # the final team: evaluated, and perhaps the best
         final = play_team(run, modules, run.eval.episodes, run.eval.seed, record=run.eval.gif_episodes)
         summary = algo.last_eval = final["summary"]
-        keep_best(run, modules, {**summary, "env_steps": algo.counters["env_steps"]}, out_dir, session)
+        keep_best(run, modules, {**summary, "env_steps": algo.counters["env_steps"]}, out_dir, session,
+                  wall_seconds())
         gif = write_episodes_gif(out_dir / "greedy.gif", final["screens"]) if final["screens"] else None
         (out_dir / "result.json").write_text(json.dumps({"env_steps": algo.counters["env_steps"],
                                                          "seed": run.eval.seed, "greedy": summary}, indent=2))
@@ -282,15 +288,17 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
     return summary
 
 
-def keep_best(run: RunConfig, modules: dict, evaluation: dict, out_dir: Path, session: dict) -> bool:
+def keep_best(run: RunConfig, modules: dict, evaluation: dict, out_dir: Path, session: dict,
+              wall_seconds: float) -> bool:
     """The team of ``modules`` and its training ``evaluation`` into the run's ``best/`` where it is the best so
-    far (``formation.policy.keep_if_best``); its card records that evaluation, the config and this session's code."""
+    far (``formation.policy.keep_if_best``); its card records that evaluation, the config, this session's code and
+    the run's ``wall_seconds`` of training up to it."""
     from formation.policy import keep_if_best
     from formation.rllib.algorithm import team_of
 
     team = team_of(run, modules, source=str(out_dir), env_steps=evaluation["env_steps"])
     team.training = {"config": run.to_dict(), "env_steps": evaluation["env_steps"], "commit": session["commit"],
-                     "hardware": session.get("hardware"),
+                     "hardware": session.get("hardware"), "wall_seconds": wall_seconds,
                      "evaluation": {"env_steps": evaluation["env_steps"], "seed": run.eval.seed,
                                     "greedy": {k: v for k, v in evaluation.items() if k != "env_steps"}}}
     return keep_if_best(team, out_dir)

@@ -370,6 +370,8 @@ def test_a_run_keeps_the_team_of_its_best_training_evaluation_which_plays_as_it_
     assert evaluation["greedy"]["success"] == top
     assert evaluation["env_steps"] == best.env_steps == max(s for s, v in evaluated.items() if v == top)
     assert best.training["config"] == RunConfig.load_saved(run_dir / "config.yaml").to_dict()
+    # its training time up to that team, as the run's card says it (formation evaluate's `trained:` line)
+    assert 0 < best.training["wall_seconds"] <= json.loads((run_dir / "training.json").read_text())["wall_seconds"]
     again = play_greedy(best.game, best.act_batch, best.eval_settings["episodes"], best.eval_settings["seed"])
     assert again["summary"]["success"] == evaluation["greedy"]["success"]
 
