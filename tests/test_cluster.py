@@ -26,6 +26,8 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).parent
 STEPS = 700  # the job's env steps
+# its waits are in Python, which a SIGALRM interrupts: the nodes are stopped, not left to the rest of the suite
+pytestmark = pytest.mark.timeout(method="signal")
 
 
 def free_ports(n: int) -> list[int]:
