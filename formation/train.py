@@ -195,8 +195,9 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
     session = {"started": now(), "commit": code_commit()}
     session_clock = time.monotonic()  # the session's wall time counts Ray's start and the restore too
 
+    earlier_seconds = sum(s["seconds"] for s in (earlier or {}).get("sessions", []))
+
     def wall_seconds() -> float:  # the run's training time so far, earlier sessions included
-        earlier_seconds = sum(s["seconds"] for s in (earlier or {}).get("sessions", []))
         return round(earlier_seconds + time.monotonic() - session_clock, 3)
 
     previous_handler = signal.signal(signal.SIGTERM, _raise_stop)

@@ -619,6 +619,10 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
         self.clock = Stopwatch()  # the driver's seconds per stage; the other processes' come with their results
         self.account: dict[str, dict[str, float]] = {"rollout": {}, "learner": {}}
         self._share_replays()
+        agents = module_of_agent(run)
+        answering = [m for m in set(agents) if answers_leader(run, m)]
+        replays, safety = self.replays, run.safety_head
+        self.learner_group.foreach_learner(lambda learner: learner.set_replays(replays, agents, answering, safety))
 
     def _after_restore(self) -> None:
         self._log_lifetime()
@@ -626,15 +630,13 @@ class FormationDQN(GreedyEvaluationMixin, DQN):
 
     # -- wiring
     def _share_replays(self, runner_ids=None) -> None:
+        """Each rollout actor's replay shard (``runner_ids``: these only). The learners are wired once, in setup: a
+        restarted rollout actor leaves their batches and prefetches as they are."""
         replays = self.replays
         n = len(replays)
         self.env_runner_group.foreach_env_runner(
             lambda runner: runner.set_replay(replays[(getattr(runner, "worker_index", 0) or 0) % n]),
             remote_worker_ids=runner_ids, local_env_runner=False)
-        agents = module_of_agent(self.run)
-        answering = [m for m in set(agents) if answers_leader(self.run, m)]
-        safety = self.run.safety_head
-        self.learner_group.foreach_learner(lambda learner: learner.set_replays(replays, agents, answering, safety))
 
     def restore_env_runners(self, env_runner_group):
         restored = super().restore_env_runners(env_runner_group)

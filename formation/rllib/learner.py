@@ -127,10 +127,7 @@ class FormationLearner(DQNTorchLearner):
         self._safety = safety
         self._prefetch = None
         self._turn = 0
-        # the last batch, updated on again while a restarted shard refills; kept when the shards are handed over
-        # again (a restarted rollout actor re-wires them): without it the learner waited for a refill that
-        # the driver, blocked on the learner, never sampled
-        self._last = getattr(self, "_last", None)
+        self._last = None  # the last batch: updated on again while a restarted shard refills
         self._priority: dict[str, np.ndarray] = {}
         self._stats: dict[str, dict[str, float]] = {}
         self.clock = Stopwatch()
