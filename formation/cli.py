@@ -88,10 +88,14 @@ def _picture_folder(given: str) -> Path:
 
 def cmd_train(args: argparse.Namespace) -> int:
     """Train from a config; checkpoints and metrics go to --out."""
+    from formation.recipe.loop import CHECKPOINT as LOOP_CHECKPOINT
     from formation.train import train
 
     if args.no_ray:
         return _train_without_ray(args)
+    if args.resume and (Path(args.out or "") / LOOP_CHECKPOINT).is_file():
+        raise ConfigError(f"--resume: {args.out!r} holds a run trained with --no-ray; allowed: formation train "
+                          f"--no-ray --resume --out {args.out}")
     if not args.resume and (args.out or args.config) and not is_uri(args.out or ""):
         _check_new_run_folder(Path(args.out) if args.out else Path("runs") / Path(args.config).stem)
     try:
@@ -104,20 +108,29 @@ def cmd_train(args: argparse.Namespace) -> int:
 def _train_without_ray(args: argparse.Namespace) -> int:
     """``formation train --no-ray``: the recipe's single-process loop (``formation.recipe.loop``)."""
     from formation.recipe.config import RunConfig
+    from formation.recipe.loop import CHECKPOINT as LOOP_CHECKPOINT
     from formation.recipe.loop import train
-    from formation.train import code_commit, hardware, now
+    from formation.train import code_commit, hardware, now, resumed_config
 
-    if args.resume:
-        raise ConfigError("--resume: a --no-ray run keeps no checkpoint; allowed: --resume without --no-ray")
-    if args.config is None:
-        raise ConfigError("config: give a config file, e.g. configs/quickstart.yaml")
     if is_uri(args.out or ""):
         raise ConfigError(f"--out: {args.out!r}: a --no-ray run writes a local folder; allowed: a local path")
-    run = RunConfig.load(args.config, parse_overrides(args.set))
-    out = check_new_folder(Path(args.out) if args.out else Path("runs") / Path(args.config).stem, "--out")
+    if args.resume:
+        if args.out is None:
+            raise ConfigError("--resume: give the run's folder, --out DIR")
+        out = Path(args.out)
+        if not (out / LOOP_CHECKPOINT).is_file() or not (out / "config.yaml").is_file():
+            raise ConfigError(f"--resume: no --no-ray checkpoint to resume in {args.out!r} (expected "
+                              f"{str(out / LOOP_CHECKPOINT)!r}); train without --resume first, or resume a Ray run "
+                              "without --no-ray")
+        run = resumed_config(out / "config.yaml", parse_overrides(args.set))
+    else:
+        if args.config is None:
+            raise ConfigError("config: give a config file, e.g. configs/quickstart.yaml")
+        run = RunConfig.load(args.config, parse_overrides(args.set))
+        out = check_new_folder(Path(args.out) if args.out else Path("runs") / Path(args.config).stem, "--out")
     try:
         record = {"started": now(), "hardware": hardware(), "commit": code_commit()}
-        summary = train(run, out, say=lambda line: print(line, flush=True), record=record)
+        summary = train(run, out, say=lambda line: print(line, flush=True), record=record, resume=args.resume)
     except KeyboardInterrupt:
         return 130
     games = summary.get("games")
@@ -385,7 +398,7 @@ def build_parser() -> argparse.ArgumentParser:
                                       "(default runs/<config name>)")
     train.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     train.add_argument("--no-ray", action="store_true",
-                       help="train in this one process, without Ray (formation.recipe.loop): no checkpoints")
+                       help="train in this one process, without Ray (formation.recipe.loop)")
     train.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                        help="override a config value, e.g. --set train.gamma=0.99")
     train.set_defaults(run=cmd_train)

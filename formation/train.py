@@ -174,11 +174,7 @@ def train(config_path: str | None, out: str | None, resume: bool = False, overri
         if not checkpoint_path(out_dir).is_dir() or not saved.is_file():
             raise ConfigError(f"--resume: no checkpoint to resume in {str(out_dir)!r} "
                               f"(expected {str(checkpoint_path(out_dir))!r}); train without --resume first")
-        changed = sorted(k for k in overrides or {} if k not in RESUMABLE and k.split(".")[0] not in RESUMABLE_SECTIONS)
-        if changed:
-            raise ConfigError(f"--resume: --set {changed[0]} would change the run being resumed; allowed: "
-                              f"{', '.join(sorted(RESUMABLE))}, {', '.join(s + '.*' for s in RESUMABLE_SECTIONS)}")
-        run = RunConfig.load_saved(saved, overrides)
+        run = resumed_config(saved, overrides)
     else:
         if config_path is None:
             raise ConfigError("config: give a config file, e.g. configs/quickstart.yaml")
@@ -340,6 +336,16 @@ def refit_recorded(policy, settings, say: Callable[[str], None], keep: Path | No
     report.update(started=started, ended=now(), commit=code_commit(), hardware=hardware())
     policy.refit_report = {**report, "earlier": earlier} if earlier else report
     return policy.refit_report
+
+
+def resumed_config(saved: Path, overrides: dict | None) -> RunConfig:
+    """The config of the run being resumed (its folder's ``config.yaml``), with the ``--set`` overrides a resume
+    may make: those of ``RESUMABLE`` and ``RESUMABLE_SECTIONS``, the rest refused in one line."""
+    changed = sorted(k for k in overrides or {} if k not in RESUMABLE and k.split(".")[0] not in RESUMABLE_SECTIONS)
+    if changed:
+        raise ConfigError(f"--resume: --set {changed[0]} would change the run being resumed; allowed: "
+                          f"{', '.join(sorted(RESUMABLE))}, {', '.join(s + '.*' for s in RESUMABLE_SECTIONS)}")
+    return RunConfig.load_saved(saved, overrides)
 
 
 # ---------------------------------------------------------------------- the training record

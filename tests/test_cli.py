@@ -1,5 +1,6 @@
 """The ``formation`` command: the main job's GIF, one-line errors for bad input, --version and python -m formation."""
 
+import json
 import subprocess
 import sys
 
@@ -88,7 +89,8 @@ def test_the_progress_line_that_ends_a_run_gives_its_speed(smoke_run):
 
 
 def test_train_no_ray_refuses_what_it_cannot_do_in_one_line(tmp_path, capsys):
-    for args, words in ((["--resume"], "--resume: a --no-ray run keeps no checkpoint"),
+    for args, words in ((["--resume"], "--resume: give the run's folder, --out DIR"),
+                        (["--resume", "--out", str(tmp_path)], "--resume: no --no-ray checkpoint to resume in"),
                         (["--out", "s3://bucket/run"], "--out: 's3://bucket/run': a --no-ray run writes a local")):
         assert main(["train", "configs/smoke.yaml", "--no-ray", *args]) == 2
         err = capsys.readouterr().err.strip()
@@ -106,3 +108,30 @@ def test_train_no_ray_leaves_a_team_that_evaluate_reads_with_how_it_was_trained(
     trained = capsys.readouterr().out.splitlines()[1]
     assert trained.startswith("trained: 640 env steps in ") and " CPUs), " in trained, trained
     assert trained.endswith("; from the reward alone, no planner"), trained
+
+
+def test_train_no_ray_stopped_by_sigterm_saves_a_checkpoint_that_resume_goes_on_from(tmp_path, capsys):
+    import signal
+
+    import torch
+
+    out = tmp_path / "stopped"
+    command = [sys.executable, "-m", "formation", "train", "configs/smoke.yaml", "--no-ray", "--out", str(out),
+               "--set", "train.total_env_steps=100000000", "--set", "eval.every_env_steps=640",
+               "--set", "eval.episodes=5"]
+    run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    for line in run.stdout:  # the first evaluation: training is under way
+        if "env steps" in line:
+            break
+    run.send_signal(signal.SIGTERM)
+    rest, _ = run.communicate(timeout=120)
+    assert run.returncode == 130, rest
+    saved = torch.load(out / "checkpoint.pt")
+    assert saved["env_steps"] >= 640 and f"stopped at {saved['env_steps']:,} env steps: checkpoint saved" in rest
+    assert not (out / "checkpoint.pt.partial").exists()
+    total = saved["env_steps"] + 640
+    assert main(["train", "--no-ray", "--resume", "--out", str(out), "--set", f"train.total_env_steps={total}"]) == 0
+    assert f"resumed at {saved['env_steps']:,} env steps" in capsys.readouterr().out
+    assert json.loads((out / "result.json").read_text())["env_steps"] == total
+    assert main(["train", "--resume", "--out", str(out)]) == 2
+    assert "holds a run trained with --no-ray; allowed: formation train --no-ray --resume" in capsys.readouterr().err

@@ -156,6 +156,79 @@ def test_a_run_stopped_after_an_evaluation_keeps_the_team_it_evaluated(tmp_path)
     assert not (out / "result.json").exists()
 
 
+def test_a_learner_restored_from_its_state_updates_as_the_one_that_saved_it():
+    """``Learner.state_dict``: networks, target copies, averages and Adam's moments; a learner loaded with it takes
+    the very same next update (Adam's moments missing, or a target copy, would change it)."""
+    import io
+
+    import torch
+
+    from formation.recipe.collect import Collector
+    from formation.recipe.learn import Learner
+    from formation.recipe.replay import FrameReplay
+    from formation.recipe.team import network_specs, replay_frame_shape
+
+    run = RunConfig.load(SMALL, {"train.average_decay": 0.9, "train.batch_size": 8, "train.target_update_every": 2})
+    replay = FrameReplay(2000, replay_frame_shape(run), 2, run.game.frame_stack, seed=0)
+    torch.manual_seed(0)
+    learner = Learner(run, {m: spec.build() for m, spec in network_specs(run).items()})
+    collector = Collector(run, 0)
+    for _ in range(4):
+        replay.add(collector.collect(learner.networks, run.train.steps_per_sample, 0)[0])
+    for _ in range(3):
+        learner.update(replay.sample(8, n_step=run.train.n_step, gamma=run.train.gamma))
+    saved = io.BytesIO()  # through a file, as the loop's checkpoint: a state dict holds the live tensors
+    torch.save(learner.state_dict(), saved)
+    saved.seek(0)
+    restored = Learner(run, {m: spec.build() for m, spec in network_specs(run).items()})
+    restored.load_state_dict(torch.load(saved))
+    sample = replay.sample(8, n_step=run.train.n_step, gamma=run.train.gamma)
+    learner.update(sample)
+    restored.update(sample)
+    assert restored.updates == learner.updates == 4
+    for part in ("networks", "targets", "averaged"):
+        for m, net in getattr(learner, part).items():
+            assert all(torch.equal(a, b) for a, b in zip(net.parameters(), getattr(restored, part)[m].parameters()))
+    slower = Learner(RunConfig.load(SMALL, {"train.average_decay": 0.9, "train.lr": 1e-5}),
+                     {m: spec.build() for m, spec in network_specs(run).items()})
+    slower.load_state_dict(learner.state_dict())  # a resume that lowers the learning rate
+    assert {g["lr"] for o in slower.optimizers.values() for g in o.param_groups} == {1e-5}
+
+
+def test_a_resumed_run_goes_on_from_its_checkpoint_and_refills_its_replay_first(tmp_path):
+    """``train(..., resume=True)``: the counters, weights and evaluations go on from ``checkpoint.pt``; the replay
+    is not kept, so the updates the replay ratio owed while it refilled are skipped, as on the distributed path."""
+    import torch
+
+    from formation.policy import load
+    from formation.recipe.loop import CHECKPOINT, train
+
+    base = {"train.learning_starts": 320, "train.average_decay": 0.9, "eval.every_env_steps": 640,
+            "eval.episodes": 10}
+    out = tmp_path / "run"
+    train(RunConfig.load(SMALL, {**base, "train.total_env_steps": 1280}), out, say=lambda line: None,
+          record={"started": "first"})
+    saved = torch.load(out / CHECKPOINT)
+    team = load(out)
+    assert saved["env_steps"] == team.env_steps == 1280
+    assert saved["learner"]["updates"] == team.training["learner_updates"] > 0
+    assert all(torch.equal(w.float(), saved["learner"]["averaged"][m][k])
+               for m, net in team.networks.items() for k, w in net.state_dict().items())
+
+    said = []
+    train(RunConfig.load(SMALL, {**base, "train.total_env_steps": 2560}), out, say=said.append,
+          record={"started": "second"}, resume=True)
+    assert said[0] == f"resumed at 1,280 env steps, {saved['learner']['updates']:,} updates; the replay refills first"
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["env_steps"] for r in rows] == [640, 1280, 1920, 2560]
+    assert rows[2]["seconds"] > rows[1]["seconds"]
+    run = RunConfig.load(SMALL, base)
+    owed = run.train.replay_ratio * (2560 - 1280)
+    learnt = rows[3]["learner_updates"] - saved["learner"]["updates"]
+    assert 0 < learnt < owed  # it learnt again once the replay held learning_starts records, not before
+    assert [s["started"] for s in load(out).training["sessions"]] == ["first", "second"]
+
+
 def test_the_learner_keeps_a_moving_average_of_each_networks_weights_after_every_update():
     """``train.average_decay``: after each update every averaged weight moves ``1 - decay`` of the way to the
     network's; the networks themselves learn as without it."""

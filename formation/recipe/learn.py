@@ -79,6 +79,27 @@ class Learner:
         if run.train.average_decay:
             self.averaged = {m: copy.deepcopy(net).requires_grad_(False) for m, net in networks.items()}
 
+    def state_dict(self) -> dict:
+        """What ``load_state_dict`` needs to go on learning as this learner would: the update count and each
+        module's network, target copy, average and Adam state (the single-process loop's checkpoint)."""
+        return {"updates": self.updates, **{name: {m: part.state_dict() for m, part in modules.items()}
+                                            for name, modules in self._parts.items()}}
+
+    def load_state_dict(self, state: dict) -> None:
+        """The state ``state_dict`` gave, but the learning rate this learner's run names (a resume may change it)."""
+        for name, modules in self._parts.items():
+            for m, part in modules.items():
+                part.load_state_dict(state[name][m])
+        for optimizer in self.optimizers.values():
+            for group in optimizer.param_groups:
+                group["lr"] = self.run.train.lr
+        self.updates = int(state["updates"])
+
+    @property
+    def _parts(self) -> dict[str, dict]:
+        return {"networks": self.networks, "targets": self.targets, "averaged": self.averaged or {},
+                "optimizers": self.optimizers}
+
     def update(self, sample: dict[str, np.ndarray], game: tuple[list[str], dict, dict] | None = None
                ) -> tuple[np.ndarray, dict[str, dict[str, float]]]:
         """One update of every module; the sample's new priorities (the largest over modules) and each module's

@@ -12,17 +12,23 @@ reference a reader can follow, and what the learning tests train with. The folde
 ``metrics.jsonl`` (a line per evaluation), ``result.json`` (the final greedy evaluation) and the team as an export
 (``policy.json``, ``<module>.pt``; written at every evaluation, so a stopped run leaves the team it last
 evaluated; with ``train.average_decay``, the averaged team that training evaluates), which ``formation evaluate
-DIR`` and ``formation.policy.load(DIR)`` read, and in ``best/`` the team of the best evaluation so far
-(``formation.policy.keep_if_best``). It keeps no checkpoints and cannot resume: a long
-run is a Ray run (``formation train CONFIG``).
+DIR`` and ``formation.policy.load(DIR)`` read, in ``best/`` the team of the best evaluation so far
+(``formation.policy.keep_if_best``), and ``checkpoint.pt``: the networks, target copies, averages, optimizers and
+counters, at every evaluation, every 10 minutes and on Ctrl-C or SIGTERM (the round under way ends first), from
+which ``--resume`` goes on. As on the distributed path, the replay is not kept: a resumed run refills it and skips
+the updates owed meanwhile.
 """
 
 from __future__ import annotations
 
 import copy
 import json
+import pickle
+import signal
+import threading
 import time
 from collections.abc import Callable
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +36,7 @@ import numpy as np
 import torch
 import yaml
 
+from formation.config import ConfigError
 from formation.evaluate import play_greedy
 from formation.policy import Policy, export, keep_if_best
 from formation.recipe.collect import Collector, epsilon_at
@@ -38,6 +45,9 @@ from formation.recipe.learn import Learner
 from formation.recipe.qnet import tied
 from formation.recipe.replay import FrameReplay
 from formation.recipe.team import module_of_agent, network_specs, replay_frame_shape
+
+CHECKPOINT = "checkpoint.pt"  # the run's state to go on from (--resume); written at every evaluation
+CHECKPOINT_SECONDS = 600  # and at least this often: a stop loses little
 
 
 @dataclass
@@ -63,19 +73,21 @@ class Game:
 
 
 def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], None] = print,
-          record: dict | None = None) -> dict:
+          record: dict | None = None, resume: bool = False) -> dict:
     """Train the team of ``run`` for ``train.total_env_steps`` env steps; the final greedy evaluation's summary
     (``formation.evaluate.play_greedy``; with ``games``, each game's and their mean success). With ``out``, the run
-    folder described above; ``record`` joins the card's training section (the CLI's hardware and commit)."""
-    # -- boilerplate: seeding and the run folder
+    folder described above; ``record`` joins the card's training section (the CLI's hardware and commit). With
+    ``resume``, go on from ``out``'s checkpoint."""
+    # -- boilerplate: seeding, the run folder, and the checkpoint to go on from
     t = run.train
     torch.manual_seed(t.seed)
     torch.set_num_threads(1)  # one core, as a rollout actor or a CPU learner of the distributed path has
     out = Path(out) if out is not None else None
+    saved = load_checkpoint(out) if resume else None
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         (out / "config.yaml").write_text(yaml.safe_dump(run.to_dict(), sort_keys=False))
-        metrics = (out / "metrics.jsonl").open("w")
+        metrics = (out / "metrics.jsonl").open("a" if resume else "w")
 
     # -- the team's networks, the learner, and each game's rollouts and replay (a share of the capacity)
     kinds = run.kinds()
@@ -90,57 +102,116 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
                           *(reading(specs, nets, own=not index)
                             for nets in (networks, learner.targets, learner.averaged))))
     steps_per_collect = run.resources.games_per_actor * t.steps_per_sample
-    env_steps, next_eval, started, episodes = 0, run.eval.every_env_steps, time.perf_counter(), []
+    # skipped: the updates owed while a resumed run's replay refilled, never run (as on the distributed path)
+    env_steps, next_eval, skipped, seconds, sessions = 0, run.eval.every_env_steps, 0.0, 0.0, []
+    if saved is not None:
+        learner.load_state_dict(saved["learner"])
+        env_steps, next_eval, skipped, seconds, sessions = (saved[k] for k in (
+            "env_steps", "next_eval", "skipped", "seconds", "sessions"))
+        if env_steps >= t.total_env_steps:
+            raise ConfigError(f"--resume: the run has trained its {env_steps:,} env steps; allowed: --set "
+                              f"train.total_env_steps=N with N above {env_steps}")
+        say(f"resumed at {env_steps:,} env steps, {learner.updates:,} updates; the replay refills first")
+    sessions = [*sessions, json.loads(json.dumps(record or {}, default=str))]  # plain values: a checkpoint loads
+    # with torch.load's weights_only
+    started, saved_at, stats, episodes = time.perf_counter() - seconds, time.perf_counter(), {}, []
 
-    while env_steps < t.total_env_steps:
-        # -- collect: every game plays steps_per_sample steps, epsilon-greedily (the teacher labels them, if any)
-        for game in games:
-            records, ended = game.collector.collect(game.networks, t.steps_per_sample, env_steps)
-            game.replay.add(records)
-            env_steps += steps_per_collect
-            episodes += ended
+    with deferred_stop() as stop:
+        while env_steps < t.total_env_steps and not stop:
+            # -- collect: every game plays steps_per_sample steps, epsilon-greedily (the teacher labels them, if any)
+            for game in games:
+                records, ended = game.collector.collect(game.networks, t.steps_per_sample, env_steps)
+                game.replay.add(records)
+                env_steps += steps_per_collect
+                episodes += ended
 
-        # -- learn: the updates the replay ratio owes (updates per env step), from learning_starts on, each on a
-        # sample of the next game in turn
-        if all(g.replay.size >= max(t.learning_starts // len(games), t.batch_size) for g in games):
-            while learner.updates < t.replay_ratio * env_steps:
-                game = games[learner.updates % len(games)]
-                sample = game.replay.sample(t.batch_size, n_step=t.n_step, gamma=t.gamma)
-                priorities, stats = learner.update(sample, (module_of_agent(game.run), game.networks, game.targets))
-                if t.prioritized:
-                    game.replay.update_priorities(sample["ids"], priorities)
+            # -- learn: the updates the replay ratio owes (updates per env step), from learning_starts on, each on
+            # a sample of the next game in turn
+            if all(g.replay.size >= max(t.learning_starts // len(games), t.batch_size) for g in games):
+                while learner.updates < t.replay_ratio * env_steps - skipped:
+                    game = games[learner.updates % len(games)]
+                    sample = game.replay.sample(t.batch_size, n_step=t.n_step, gamma=t.gamma)
+                    priorities, stats = learner.update(sample, (module_of_agent(game.run), game.networks,
+                                                                game.targets))
+                    if t.prioritized:
+                        game.replay.update_priorities(sample["ids"], priorities)
+            elif learner.updates:
+                skipped = t.replay_ratio * env_steps - learner.updates
 
-        # -- evaluate: greedy play on held-out scenarios, every eval.every_env_steps
-        if env_steps >= next_eval or env_steps >= t.total_env_steps:
-            summary = evaluate_games(games)
-            row = {"env_steps": env_steps, "learner_updates": learner.updates,
-                   "seconds": time.perf_counter() - started, "epsilon": epsilon_at(env_steps, t),
-                   **{f"greedy/{k}": summary[k] for k in ("success", "steps_success_mean") if k in summary},
-                   **{f"greedy/{name}/success": s["success"] for name, s in summary.get("games", {}).items()},
-                   **explored(episodes)}
-            if learner.updates:
-                row.update({f"learner/{m}/{k}": v for m, values in stats.items() for k, v in values.items()})
-            episodes, kept = [], False
-            if out is not None:  # the team as evaluated, so that a run stopped later still leaves it
-                metrics.write(json.dumps(row) + "\n")
-                metrics.flush()
-                team = policy_of(kinds[0], games[0].team, source=str(out), env_steps=env_steps)
-                team.training = {"config": run.to_dict(), "env_steps": env_steps, "learner_updates": learner.updates,
-                                 "wall_seconds": round(time.perf_counter() - started, 3),
-                                 "evaluation": {"env_steps": env_steps, "seed": run.eval.seed, "greedy": summary},
-                                 **(record or {})}
-                export(team, out)
-                kept = keep_if_best(team, out)
-            say(f"{env_steps:>9,}/{t.total_env_steps:,} env steps  greedy success {summary['success']:6.1%}  "
-                f"{env_steps / row['seconds']:6,.0f} env steps/s" + ("  (best so far: best/)" if kept else ""))
-            next_eval += run.eval.every_env_steps
+            # -- evaluate: greedy play on held-out scenarios, every eval.every_env_steps
+            evaluated = env_steps >= next_eval or env_steps >= t.total_env_steps
+            if evaluated:
+                summary = evaluate_games(games)
+                row = {"env_steps": env_steps, "learner_updates": learner.updates,
+                       "seconds": time.perf_counter() - started, "epsilon": epsilon_at(env_steps, t),
+                       **{f"greedy/{k}": summary[k] for k in ("success", "steps_success_mean") if k in summary},
+                       **{f"greedy/{name}/success": s["success"] for name, s in summary.get("games", {}).items()},
+                       **{f"learner/{m}/{k}": v for m, values in stats.items() for k, v in values.items()},
+                       **explored(episodes)}
+                episodes, kept = [], False
+                if out is not None:  # the team as evaluated, so that a run stopped later still leaves it
+                    metrics.write(json.dumps(row) + "\n")
+                    metrics.flush()
+                    team = policy_of(kinds[0], games[0].team, source=str(out), env_steps=env_steps)
+                    team.training = {"config": run.to_dict(), "env_steps": env_steps,
+                                     "learner_updates": learner.updates, "wall_seconds": round(row["seconds"], 3),
+                                     "evaluation": {"env_steps": env_steps, "seed": run.eval.seed, "greedy": summary},
+                                     **sessions[-1], **({"sessions": sessions} if len(sessions) > 1 else {})}
+                    export(team, out)
+                    kept = keep_if_best(team, out)
+                say(f"{env_steps:>9,}/{t.total_env_steps:,} env steps  greedy success {summary['success']:6.1%}  "
+                    f"{env_steps / row['seconds']:6,.0f} env steps/s" + ("  (best so far: best/)" if kept else ""))
+                next_eval += run.eval.every_env_steps
+
+            # -- checkpoint: at every evaluation, every CHECKPOINT_SECONDS, and when stopped
+            if out is not None and (evaluated or stop or time.perf_counter() - saved_at > CHECKPOINT_SECONDS):
+                save_checkpoint(out, {"learner": learner.state_dict(), "env_steps": env_steps, "next_eval": next_eval,
+                                      "skipped": skipped, "seconds": time.perf_counter() - started,
+                                      "sessions": sessions})
+                saved_at = time.perf_counter()
 
     # -- boilerplate: the final evaluation's result (the team is exported with it, above)
     if out is not None:
         metrics.close()
+    if stop:
+        say(f"stopped at {env_steps:,} env steps: checkpoint saved in {out / CHECKPOINT if out else 'nothing'}; "
+            "continue with --resume")
+        raise KeyboardInterrupt
+    if out is not None:
         (out / "result.json").write_text(json.dumps({"env_steps": env_steps, "seed": run.eval.seed,
                                                      "greedy": summary}, indent=2))
     return summary
+
+
+def save_checkpoint(out: Path, state: dict) -> None:
+    """``out/checkpoint.pt``, replaced whole (written beside it, then renamed), so a run stopped while it writes
+    keeps the one before."""
+    torch.save(state, out / (CHECKPOINT + ".partial"))
+    (out / (CHECKPOINT + ".partial")).replace(out / CHECKPOINT)
+
+
+def load_checkpoint(out: Path) -> dict:
+    try:
+        return torch.load(out / CHECKPOINT)
+    except (OSError, RuntimeError, EOFError, pickle.UnpicklingError) as err:
+        raise ConfigError(f"--resume: {str(out / CHECKPOINT)!r} cannot be read ({type(err).__name__}); allowed: "
+                          "the checkpoint.pt a --no-ray run wrote") from None
+
+
+@contextmanager
+def deferred_stop():
+    """A list that a SIGINT (Ctrl-C) or SIGTERM joins, instead of stopping the loop where it is: the loop ends its
+    round and saves its checkpoint first. Outside the main thread, signals stop nothing here."""
+    stop: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+    before = {s: signal.signal(s, lambda signum, frame: stop.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
 
 
 def reading(specs: dict, networks: dict[str, torch.nn.Module] | None, own: bool) -> dict | None:
