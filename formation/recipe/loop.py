@@ -84,6 +84,9 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
     torch.set_num_threads(1)  # one core, as a rollout actor or a CPU learner of the distributed path has
     out = Path(out) if out is not None else None
     saved = load_checkpoint(out) if resume else None
+    if saved is not None and saved["env_steps"] >= t.total_env_steps:
+        raise ConfigError(f"--resume: the run has trained its {saved['env_steps']:,} env steps; allowed: --set "
+                          f"train.total_env_steps=N with N above {saved['env_steps']}")
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         (out / "config.yaml").write_text(yaml.safe_dump(run.to_dict(), sort_keys=False))
@@ -108,12 +111,9 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
         learner.load_state_dict(saved["learner"])
         env_steps, next_eval, skipped, seconds, sessions = (saved[k] for k in (
             "env_steps", "next_eval", "skipped", "seconds", "sessions"))
-        if env_steps >= t.total_env_steps:
-            raise ConfigError(f"--resume: the run has trained its {env_steps:,} env steps; allowed: --set "
-                              f"train.total_env_steps=N with N above {env_steps}")
         say(f"resumed at {env_steps:,} env steps, {learner.updates:,} updates; the replay refills first")
-    sessions = [*sessions, json.loads(json.dumps(record or {}, default=str))]  # plain values: a checkpoint loads
-    # with torch.load's weights_only
+    # the sessions' records as plain values, which torch.load reads with weights_only
+    sessions = [*sessions, json.loads(json.dumps(record or {}, default=str))]
     started, saved_at, stats, episodes = time.perf_counter() - seconds, time.perf_counter(), {}, []
 
     with deferred_stop() as stop:
