@@ -128,6 +128,7 @@ def test_train_no_ray_stopped_by_sigterm_saves_a_checkpoint_that_resume_goes_on_
     assert run.returncode == 130, rest
     saved = torch.load(out / "checkpoint.pt")
     assert saved["env_steps"] >= 640 and f"stopped at {saved['env_steps']:,} env steps: checkpoint saved" in rest
+    assert "stopping once this round is saved" in rest
     assert not (out / "checkpoint.pt.partial").exists()
     total = saved["env_steps"] + 640
     assert main(["train", "--no-ray", "--resume", "--out", str(out), "--set", f"train.total_env_steps={total}"]) == 0

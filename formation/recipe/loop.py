@@ -14,7 +14,8 @@ reference a reader can follow, and what the learning tests train with. The folde
 evaluated; with ``train.average_decay``, the averaged team that training evaluates), which ``formation evaluate
 DIR`` and ``formation.policy.load(DIR)`` read, in ``best/`` the team of the best evaluation so far
 (``formation.policy.keep_if_best``), and ``checkpoint.pt``: the networks, target copies, averages, optimizers and
-counters, at every evaluation, every 10 minutes and on Ctrl-C or SIGTERM (the round under way ends first), from
+counters, at every evaluation, every 10 minutes and on Ctrl-C or SIGTERM (the round under way ends first; a
+second signal stops at once), from
 which ``--resume`` goes on. As on the distributed path, the replay is not kept: a resumed run refills it and skips
 the updates owed meanwhile.
 """
@@ -116,7 +117,7 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
     sessions = [*sessions, json.loads(json.dumps(record or {}, default=str))]
     started, saved_at, stats, episodes = time.perf_counter() - seconds, time.perf_counter(), {}, []
 
-    with deferred_stop() as stop:
+    with deferred_stop(say) as stop:
         while env_steps < t.total_env_steps and not stop:
             # -- collect: every game plays steps_per_sample steps, epsilon-greedily (the teacher labels them, if any)
             for game in games:
@@ -199,14 +200,22 @@ def load_checkpoint(out: Path) -> dict:
 
 
 @contextmanager
-def deferred_stop():
+def deferred_stop(say: Callable[[str], None]):
     """A list that a SIGINT (Ctrl-C) or SIGTERM joins, instead of stopping the loop where it is: the loop ends its
-    round and saves its checkpoint first. Outside the main thread, signals stop nothing here."""
+    round and saves its checkpoint first. A second signal stops at once, from the checkpoint before. Outside the
+    main thread, signals stop nothing here."""
     stop: list[int] = []
+
+    def defer(signum: int, frame) -> None:
+        if stop:
+            raise KeyboardInterrupt
+        stop.append(signum)
+        say("stopping once this round is saved (again to stop now, from the checkpoint before)")
+
     if threading.current_thread() is not threading.main_thread():
         yield stop
         return
-    before = {s: signal.signal(s, lambda signum, frame: stop.append(signum)) for s in (signal.SIGINT, signal.SIGTERM)}
+    before = {s: signal.signal(s, defer) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield stop
     finally:
