@@ -14,10 +14,9 @@ reference a reader can follow, and what the learning tests train with. The folde
 evaluated; with ``train.average_decay``, the averaged team that training evaluates), which ``formation evaluate
 DIR`` and ``formation.policy.load(DIR)`` read, in ``best/`` the team of the best evaluation so far
 (``formation.policy.keep_if_best``), and ``checkpoint.pt``: the networks, target copies, averages, optimizers and
-counters, at every evaluation, every 10 minutes and on Ctrl-C or SIGTERM (the round under way ends first; a
-second signal stops at once), from
-which ``--resume`` goes on. As on the distributed path, the replay is not kept: a resumed run refills it and skips
-the updates owed meanwhile.
+counters, at every evaluation, every 10 minutes and on Ctrl-C or SIGTERM (the round under way ends first; a second
+signal stops at once), from which ``formation train --no-ray --resume --out DIR`` goes on. As on the distributed
+path, the replay is not kept: a resumed run refills it and skips the updates owed meanwhile.
 """
 
 from __future__ import annotations
