@@ -174,8 +174,8 @@ def train(run: RunConfig, out: str | Path | None = None, say: Callable[[str], No
     if out is not None:
         metrics.close()
     if stop:
-        say(f"stopped at {env_steps:,} env steps: checkpoint saved in {out / CHECKPOINT if out else 'nothing'}; "
-            "continue with --resume")
+        say(f"stopped at {env_steps:,} env steps" + (f": checkpoint saved in {out / CHECKPOINT}; continue with "
+                                                      f"formation train --no-ray --resume --out {out}" if out else ""))
         raise KeyboardInterrupt
     if out is not None:
         (out / "result.json").write_text(json.dumps({"env_steps": env_steps, "seed": run.eval.seed,
