@@ -127,7 +127,11 @@ def _train_without_ray(args: argparse.Namespace) -> int:
         if args.config is None:
             raise ConfigError("config: give a config file, e.g. configs/quickstart.yaml")
         run = RunConfig.load(args.config, parse_overrides(args.set))
-        out = check_new_folder(Path(args.out) if args.out else Path("runs") / Path(args.config).stem, "--out")
+        out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
+        if (out / LOOP_CHECKPOINT).is_file():
+            raise ConfigError(f"--out: {str(out)!r} already holds a run; use --resume to continue it or choose "
+                              "another --out")
+        out = check_new_folder(out, "--out")
     try:
         record = {"started": now(), "hardware": hardware(), "commit": code_commit()}
         summary = train(run, out, say=lambda line: print(line, flush=True), record=record, resume=args.resume)
@@ -143,7 +147,7 @@ def _train_without_ray(args: argparse.Namespace) -> int:
 def _check_new_run_folder(out: Path) -> None:
     """A new run goes into a new or empty folder. One that holds a checkpoint is ``formation.train``'s
     to refuse (it says to resume); one that holds anything else is refused here."""
-    if out.is_dir() and any(p.name.startswith("checkpoint") for p in out.iterdir()):
+    if out.is_dir() and any(p.name.startswith("checkpoint") and p.is_dir() for p in out.iterdir()):
         check_writable(out, "--out")
     else:
         check_new_folder(out, "--out")

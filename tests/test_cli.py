@@ -137,6 +137,9 @@ def test_train_no_ray_stopped_by_sigterm_saves_a_checkpoint_that_resume_goes_on_
     assert main(["train", "--resume", "--out", str(out)]) == 2
     assert "holds a run trained with --no-ray; allowed: formation train --no-ray --resume" in capsys.readouterr().err
     config = (out / "config.yaml").read_text()
+    for again in (["--no-ray"], []):  # a new run, with or without Ray, into the folder: refused, nothing touched
+        assert main(["train", "configs/smoke.yaml", *again, "--out", str(out)]) == 2
+        assert f"--out: {str(out)!r} " in capsys.readouterr().err
     assert main(["train", "--no-ray", "--resume", "--out", str(out), "--set", "train.lr=0.5"]) == 2
     assert f"the run has trained its {total:,} env steps; allowed: --set train.total_env_steps=N with N above" in \
         capsys.readouterr().err
