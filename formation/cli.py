@@ -93,11 +93,12 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     if args.no_ray:
         return _train_without_ray(args)
-    if args.resume and (Path(args.out or "") / LOOP_CHECKPOINT).is_file():
-        raise ConfigError(f"--resume: {args.out!r} holds a run trained with --no-ray; allowed: formation train "
-                          f"--no-ray --resume --out {args.out}")
-    if not args.resume and (args.out or args.config) and not is_uri(args.out or ""):
-        _check_new_run_folder(Path(args.out) if args.out else Path("runs") / Path(args.config).stem)
+    out = None if is_uri(args.out or "") else _run_folder(args)
+    if args.resume and out is not None and (out / LOOP_CHECKPOINT).is_file():
+        raise ConfigError(f"--resume: {str(out)!r} holds a run trained with --no-ray; allowed: formation train "
+                          f"--no-ray --resume --out {out}")
+    if not args.resume and out is not None:
+        _check_new_run_folder(out, ray=True)
     try:
         train(args.config, args.out, resume=args.resume, overrides=parse_overrides(args.set))
     except KeyboardInterrupt:
@@ -114,12 +115,12 @@ def _train_without_ray(args: argparse.Namespace) -> int:
 
     if is_uri(args.out or ""):
         raise ConfigError(f"--out: {args.out!r}: a --no-ray run writes a local folder; allowed: a local path")
+    out = _run_folder(args)
     if args.resume:
-        if args.out is None:
+        if out is None:
             raise ConfigError("--resume: give the run's folder, --out DIR")
-        out = Path(args.out)
         if not (out / LOOP_CHECKPOINT).is_file() or not (out / "config.yaml").is_file():
-            raise ConfigError(f"--resume: no --no-ray checkpoint to resume in {args.out!r} (expected "
+            raise ConfigError(f"--resume: no --no-ray checkpoint to resume in {str(out)!r} (expected "
                               f"{str(out / LOOP_CHECKPOINT)!r}); train without --resume first, or resume a Ray run "
                               "without --no-ray")
         run = resumed_config(out / "config.yaml", parse_overrides(args.set))
@@ -127,11 +128,7 @@ def _train_without_ray(args: argparse.Namespace) -> int:
         if args.config is None:
             raise ConfigError("config: give a config file, e.g. configs/quickstart.yaml")
         run = RunConfig.load(args.config, parse_overrides(args.set))
-        out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
-        if (out / LOOP_CHECKPOINT).is_file():
-            raise ConfigError(f"--out: {str(out)!r} already holds a run; use --resume to continue it or choose "
-                              "another --out")
-        out = check_new_folder(out, "--out")
+        out = _check_new_run_folder(out, ray=False)
     try:
         record = {"started": now(), "hardware": hardware(), "commit": code_commit()}
         summary = train(run, out, say=lambda line: print(line, flush=True), record=record, resume=args.resume)
@@ -144,13 +141,25 @@ def _train_without_ray(args: argparse.Namespace) -> int:
     return 0
 
 
-def _check_new_run_folder(out: Path) -> None:
-    """A new run goes into a new or empty folder. One that holds a checkpoint is ``formation.train``'s
-    to refuse (it says to resume); one that holds anything else is refused here."""
-    if out.is_dir() and any(p.name.startswith("checkpoint") and p.is_dir() for p in out.iterdir()):
-        check_writable(out, "--out")
-    else:
-        check_new_folder(out, "--out")
+def _run_folder(args: argparse.Namespace) -> Path | None:
+    """The run's folder: --out, else runs/<config name> (None without either)."""
+    if args.out:
+        return Path(args.out)
+    return Path("runs") / Path(args.config).stem if args.config else None
+
+
+def _check_new_run_folder(out: Path, ray: bool) -> Path:
+    """A new run goes into a new or empty folder. One that holds a Ray run's checkpoint is ``formation.train``'s
+    to refuse (it says to resume), one that holds a ``--no-ray`` run's is refused here alike, and one that holds
+    anything else is refused too."""
+    from formation.recipe.loop import CHECKPOINT as LOOP_CHECKPOINT
+
+    if (out / LOOP_CHECKPOINT).is_file():
+        raise ConfigError(f"--out: {str(out)!r} already holds a run; use --resume to continue it or choose another "
+                          "--out")
+    if ray and out.is_dir() and any(p.name.startswith("checkpoint") and p.is_dir() for p in out.iterdir()):
+        return check_writable(out, "--out")
+    return check_new_folder(out, "--out")
 
 
 def _source(path: str | Path) -> str | Path:

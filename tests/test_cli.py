@@ -90,9 +90,13 @@ def test_the_progress_line_that_ends_a_run_gives_its_speed(smoke_run):
 
 def test_train_no_ray_refuses_what_it_cannot_do_in_one_line(tmp_path, capsys):
     for args, words in ((["--resume"], "--resume: give the run's folder, --out DIR"),
-                        (["--resume", "--out", str(tmp_path)], "--resume: no --no-ray checkpoint to resume in"),
-                        (["--out", "s3://bucket/run"], "--out: 's3://bucket/run': a --no-ray run writes a local")):
-        assert main(["train", "configs/smoke.yaml", "--no-ray", *args]) == 2
+                        (["configs/smoke.yaml", "--resume"],  # the run folder as without --resume: runs/<config>
+                         "--resume: no --no-ray checkpoint to resume in 'runs/smoke'"),
+                        (["configs/smoke.yaml", "--resume", "--out", str(tmp_path)],
+                         "--resume: no --no-ray checkpoint to resume in"),
+                        (["configs/smoke.yaml", "--out", "s3://bucket/run"],
+                         "--out: 's3://bucket/run': a --no-ray run writes a local")):
+        assert main(["train", "--no-ray", *args]) == 2
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and words in err, err
 
